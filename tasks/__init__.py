@@ -1,0 +1,5 @@
+"""The work of fivecal.
+
+Science modules here import no Prefect: a notebook can import them and nothing starts.
+Thin Prefect ``@task`` wrappers live in ``tasks.prefect_tasks`` only.
+"""

@@ -1,0 +1,57 @@
+"""Dot calibration plates.
+
+Plate frame: origin at the centre of the dot grid, +X along increasing column, +Y along
+increasing row, +Z out of the printed face (towards the camera that views it). Units: mm.
+Dot (row r, col c) sits at ((c - (cols-1)/2) * pitch, (r - (rows-1)/2) * pitch, 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class DotPlate:
+    """A rows × cols grid of circular dots.
+
+    pitch_mm: centre-to-centre spacing (mm). dot_diameter_mm: dot diameter (mm).
+    dark_dots: True for dark dots on a light plate, False for light dots on dark.
+    margin_mm: plate border beyond the outer dot centres (mm); outside the plate is background.
+    """
+
+    rows: int
+    cols: int
+    pitch_mm: float
+    dot_diameter_mm: float
+    dark_dots: bool = True
+    margin_mm: float = 0.0
+    name: str = "plate"
+
+    def dot_centres_mm(self) -> np.ndarray:
+        """(rows*cols, 3) dot centres in the plate frame, row-major (row 0 col 0 first)."""
+        r, c = np.meshgrid(np.arange(self.rows), np.arange(self.cols), indexing="ij")
+        x = (c.ravel() - (self.cols - 1) / 2.0) * self.pitch_mm
+        y = (r.ravel() - (self.rows - 1) / 2.0) * self.pitch_mm
+        return np.stack([x, y, np.zeros_like(x)], axis=1)
+
+    def row_col(self) -> np.ndarray:
+        """(rows*cols, 2) integer (row, col) of each dot, in the order of dot_centres_mm."""
+        r, c = np.meshgrid(np.arange(self.rows), np.arange(self.cols), indexing="ij")
+        return np.stack([r.ravel(), c.ravel()], axis=1)
+
+    @property
+    def half_extent_mm(self) -> tuple[float, float]:
+        """Half width and half height of the plate (mm), margin included."""
+        return (
+            (self.cols - 1) / 2.0 * self.pitch_mm + self.margin_mm,
+            (self.rows - 1) / 2.0 * self.pitch_mm + self.margin_mm,
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DotPlate:
+        return cls(**d)

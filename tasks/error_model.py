@@ -1,0 +1,228 @@
+"""Geometric errors of the machine: PIGEs (Table 2, eqs. 9–11) and PDGEs (Table 1, eq. 8).
+
+Every error is an error screw in the local frame of the joint it belongs to, applied before the
+ideal joint motion as in eq. 12: ``link_offset · e^{ξ_D(θ)} · e^{ξ_I} · e^{ξ θ}``.
+
+PIGE names follow the paper's symbols (ASCII spelling) and each is defined by its unit screw in
+the joint frame. The paper leaves the axis of each α/β open; we take α/β to be the rotation that
+changes the angle between the two named axes:
+
+==========  =====  ============================  =======================================
+name        joint  unit screw (local frame)      meaning
+==========  =====  ============================  =======================================
+delta_AZ    A      translation z                 radial error of A along z
+delta_AY    A      translation y                 radial error of A along y
+alpha_AZ    A      rotation about y              A axis tilted toward z (A–Z squareness)
+beta_AY     A      rotation about z              A axis tilted toward y (A–Y squareness)
+delta_CX    C      translation x                 radial error of C along x
+delta_CY    C      translation y                 radial error of C along y
+beta_CY     C      rotation about x              C axis tilted toward y (C–Y squareness)
+alpha_CX    C      rotation about y              C axis tilted toward x (C–X squareness)
+gamma_YX    Y      rotation about z              Y–X squareness (X is the reference)
+alpha_YZ    Z      rotation about x              Z–Y squareness
+beta_XZ     Z      rotation about y              Z–X squareness
+==========  =====  ============================  =======================================
+
+Within a joint the factors are multiplied in the order of eqs. 9–11 (the table order above).
+Units: files and reports use µm and arcsec; inside, mm and rad.
+
+PDGEs: each axis has six error motions (δx, δy, δz, εx, εy, εz) as smooth functions of its own
+position θ: a constant part, Chebyshev polynomials over the stroke and sinusoids (ball-screw and
+guide-way waviness, or harmonics of a rotary axis). The constant part is kept (the paper's
+"absolute representation": Fig. 11 histograms have non-zero means).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tasks import se3
+
+ARCSEC = np.pi / (180.0 * 3600.0)  # rad per arcsec
+UM = 1e-3  # mm per µm
+
+# name -> (joint, screw index 0..5 in (tx, ty, tz, rx, ry, rz)), in the product order of eqs. 9–11
+PIGE_SCREWS: dict[str, tuple[str, int]] = {
+    "delta_AZ": ("A", 2),
+    "delta_AY": ("A", 1),
+    "alpha_AZ": ("A", 4),
+    "beta_AY": ("A", 5),
+    "delta_CX": ("C", 0),
+    "delta_CY": ("C", 1),
+    "beta_CY": ("C", 3),
+    "alpha_CX": ("C", 4),
+    "gamma_YX": ("Y", 5),
+    "alpha_YZ": ("Z", 3),
+    "beta_XZ": ("Z", 4),
+}
+PIGE_NAMES = tuple(PIGE_SCREWS)
+ERROR_COMPONENTS = ("dx", "dy", "dz", "ex", "ey", "ez")
+# file units (µm, arcsec) -> internal (mm, rad), per component of a six-vector
+COMPONENT_SCALE = np.array([UM, UM, UM, ARCSEC, ARCSEC, ARCSEC])
+
+
+def pige_is_angle(name: str) -> bool:
+    return PIGE_SCREWS[name][1] >= 3
+
+
+def pige_to_internal(name: str, value_file_units: float) -> float:
+    return value_file_units * (ARCSEC if pige_is_angle(name) else UM)
+
+
+def pige_to_file_units(name: str, value_internal: float) -> float:
+    return value_internal / (ARCSEC if pige_is_angle(name) else UM)
+
+
+def pige_unit(name: str) -> str:
+    return "arcsec" if pige_is_angle(name) else "um"
+
+
+def pige_joint_transforms(pige: dict[str, float], n: int | None = None) -> dict[str, np.ndarray]:
+    """Constant PIGE transforms e^{ξ_I} per joint (eqs. 9–11), values in mm / rad.
+
+    Returns {joint: (4, 4)} for joints that have at least one PIGE.
+    """
+    out: dict[str, np.ndarray] = {}
+    for name, (joint, k) in PIGE_SCREWS.items():
+        value = pige.get(name, 0.0)
+        if value == 0.0:
+            continue
+        screw = np.zeros(6)
+        screw[k] = value
+        factor = se3.exp(screw)
+        out[joint] = out[joint] @ factor if joint in out else factor
+    return out
+
+
+@dataclass
+class AxisProfile:
+    """Six error motions of one axis as smooth functions of its position.
+
+    All arrays in internal units (mm, rad). ``position`` is in internal units too
+    (mm for linear axes, rad for rotary ones).
+
+    offset: (6,) constant part.
+    chebyshev: (6, K) coefficients of T_1..T_K on s = position / half_range.
+    sine_amplitude: (6, M); sine_wavelength: (M,) in position units; sine_phase: (6, M) rad.
+    """
+
+    half_range: float
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    chebyshev: np.ndarray = field(default_factory=lambda: np.zeros((6, 0)))
+    sine_amplitude: np.ndarray = field(default_factory=lambda: np.zeros((6, 0)))
+    sine_wavelength: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    sine_phase: np.ndarray = field(default_factory=lambda: np.zeros((6, 0)))
+
+    def __call__(self, position: np.ndarray) -> np.ndarray:
+        """(N,) positions -> (N, 6) error motions (mm, rad)."""
+        pos = np.asarray(position, dtype=float)
+        out = np.broadcast_to(self.offset, (*pos.shape, 6)).copy()
+        if self.chebyshev.shape[1]:
+            s = pos / self.half_range
+            basis = np.polynomial.chebyshev.chebvander(s, self.chebyshev.shape[1])[..., 1:]  # (N, K)
+            out += basis @ self.chebyshev.T
+        if self.sine_wavelength.size:
+            arg = 2.0 * np.pi * pos[..., None, None] / self.sine_wavelength + self.sine_phase  # (N, 6, M)
+            out += np.sum(self.sine_amplitude * np.sin(arg), axis=-1)
+        return out
+
+    def scaled(self, translation: float, rotation: float) -> AxisProfile:
+        """The same shapes with translational and rotational parts multiplied."""
+        s = np.array([translation] * 3 + [rotation] * 3)
+        return AxisProfile(
+            self.half_range,
+            self.offset * s,
+            self.chebyshev * s[:, None],
+            self.sine_amplitude * s[:, None],
+            self.sine_wavelength.copy(),
+            self.sine_phase.copy(),
+        )
+
+    def to_dict(self) -> dict:
+        """File form: µm / arcsec, wavelengths in mm or rad as stored."""
+        sc = COMPONENT_SCALE
+        return {
+            "half_range": self.half_range,
+            "offset": (self.offset / sc).tolist(),
+            "chebyshev": (self.chebyshev / sc[:, None]).tolist(),
+            "sine_amplitude": (self.sine_amplitude / sc[:, None]).tolist(),
+            "sine_wavelength": self.sine_wavelength.tolist(),
+            "sine_phase": self.sine_phase.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> AxisProfile:
+        sc = COMPONENT_SCALE
+        cheb = np.asarray(d.get("chebyshev", np.zeros((6, 0))), dtype=float).reshape(6, -1)
+        amp = np.asarray(d.get("sine_amplitude", np.zeros((6, 0))), dtype=float).reshape(6, -1)
+        return cls(
+            half_range=float(d["half_range"]),
+            offset=np.asarray(d.get("offset", np.zeros(6)), dtype=float) * sc,
+            chebyshev=cheb * sc[:, None],
+            sine_amplitude=amp * sc[:, None],
+            sine_wavelength=np.asarray(d.get("sine_wavelength", []), dtype=float),
+            sine_phase=np.asarray(d.get("sine_phase", np.zeros((6, 0))), dtype=float).reshape(6, -1),
+        )
+
+
+@dataclass
+class ErrorModel:
+    """Everything that makes the real machine differ from its description.
+
+    pige: {name: value} in mm / rad (missing names are zero).
+    pdge: {axis: AxisProfile}; axes without a profile have no PDGE.
+    effects: extra physical effects (see :mod:`tasks.effects`), each adding to joint error
+    screws, attachment poses or camera intrinsics.
+    """
+
+    pige: dict[str, float] = field(default_factory=dict)
+    pdge: dict[str, AxisProfile] = field(default_factory=dict)
+    effects: list = field(default_factory=list)
+
+    @classmethod
+    def none(cls) -> ErrorModel:
+        return cls()
+
+    def joint_error_vectors(self, machine, q: np.ndarray, context) -> dict[str, np.ndarray]:
+        """{axis: (N, 6)} PDGE six-vectors (mm, rad) plus every effect's joint errors.
+
+        q: (N, 5) joint values in AXIS_ORDER (mm, rad). context: :class:`tasks.context.PoseContext`.
+        """
+        from tasks.machine import AXIS_ORDER
+
+        out: dict[str, np.ndarray] = {}
+        for axis, profile in self.pdge.items():
+            out[axis] = profile(q[:, AXIS_ORDER.index(axis)])
+        for effect in self.effects:
+            for axis, e in effect.joint_errors(machine, q, context).items():
+                out[axis] = out[axis] + e if axis in out else np.broadcast_to(e, (q.shape[0], 6)).copy()
+        return out
+
+    def attachment_error_vectors(self, machine, q: np.ndarray, context) -> dict[str, np.ndarray]:
+        """{attachment: (N, 6)} error motions of attachments in their own frame (mm, rad)."""
+        out: dict[str, np.ndarray] = {}
+        for effect in self.effects:
+            for name, e in effect.attachment_errors(machine, q, context).items():
+                e = np.broadcast_to(e, (q.shape[0], 6))
+                out[name] = out[name] + e if name in out else e.copy()
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "pige": {n: pige_to_file_units(n, v) for n, v in self.pige.items()},
+            "pige_units": {n: pige_unit(n) for n in self.pige},
+            "pdge": {a: p.to_dict() for a, p in self.pdge.items()},
+            "effects": [e.spec() for e in self.effects],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ErrorModel:
+        from tasks.effects import parse_effect
+
+        return cls(
+            pige={n: pige_to_internal(n, float(v)) for n, v in d.get("pige", {}).items()},
+            pdge={a: AxisProfile.from_dict(p) for a, p in d.get("pdge", {}).items()},
+            effects=[parse_effect(s) for s in d.get("effects", [])],
+        )

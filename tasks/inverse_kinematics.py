@@ -1,0 +1,96 @@
+"""Inverse kinematics: commands X/Y/Z/A/C that put the tip at a desired position and tool
+direction in the workpiece frame, under any error model.
+
+Used for compensation (the commands that make the *real* machine reach what the ideal one
+would) and by the simulator to aim camera 1 at plate a. Generic over the machine description:
+batched Gauss–Newton on the six residuals (tip position mm, tool direction scaled to mm) with a
+forward-difference Jacobian, started from a coarse search over the rotary axes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tasks.context import PoseContext
+from tasks.error_model import ErrorModel
+from tasks.kinematics import forward
+from tasks.machine import AXIS_ORDER, Machine
+
+DIRECTION_WEIGHT_MM = 100.0  # 1 rad of tool direction weighs like 100 mm of position
+_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-5, 1e-5])  # finite-difference steps (mm, mm, mm, deg, deg)
+
+
+def _tip_state(machine, commands, errors, context):
+    """(N, 6): tip position (mm) and tool direction × DIRECTION_WEIGHT_MM, workpiece frame."""
+    g = forward(machine, commands, errors, context).tool_in_workpiece()
+    return np.concatenate([g[:, :3, 3], DIRECTION_WEIGHT_MM * g[:, :3, 2]], axis=1)
+
+
+def _rotary_start(machine: Machine, direction: np.ndarray, prefer: np.ndarray) -> np.ndarray:
+    """Initial (N, 5) commands: linear axes at 0, rotary axes from a 5° grid search on direction.
+
+    A five-axis head reaches most directions on two branches (here (A, C) and (-A, C + 180°)):
+    among grid points within 0.01 of the best direction match, take the one nearest ``prefer``.
+    """
+    rot = [i for i, a in enumerate(AXIS_ORDER) if machine.axes[a].is_rotary]
+    grids = [np.arange(lo, hi + 1e-9, 5.0) for lo, hi in machine.strokes_command()[rot]]
+    mesh = np.stack(np.meshgrid(*grids, indexing="ij"), -1).reshape(-1, len(rot))
+    cand = np.zeros((mesh.shape[0], 5))
+    cand[:, rot] = mesh
+    d = forward(machine, cand, None).tool_in_workpiece()[:, :3, 2]  # (M, 3)
+    match = direction @ d.T  # (N, M)
+    near = match > match.max(axis=1, keepdims=True) - 0.01
+    dist = np.abs(prefer[:, None, rot] - cand[None, :, rot]).sum(axis=-1)
+    best = np.argmin(np.where(near, dist, np.inf), axis=1)
+    return cand[best]
+
+
+def inverse(
+    machine: Machine,
+    tip_position_mm,
+    tool_direction,
+    errors: ErrorModel | None = None,
+    context: PoseContext | None = None,
+    initial=None,
+    prefer=None,
+    tol_mm: float = 1e-9,
+    max_iter: int = 30,
+) -> np.ndarray:
+    """Commands (N, 5) [mm, deg] that reach the desired tip poses.
+
+    tip_position_mm: (N, 3) tip position in the workpiece frame (mm).
+    tool_direction: (N, 3) desired tool axis (tip frame z) in the workpiece frame (unit).
+    errors: the machine's error model (None: ideal). initial: (N, 5) start commands (default:
+    grid search over the rotary axes, on the branch nearest ``prefer`` (N, 5) or (5,), default
+    home). Raises ``ValueError`` for poses that do not converge.
+    """
+    target_p = np.atleast_2d(np.asarray(tip_position_mm, dtype=float))
+    target_d = np.atleast_2d(np.asarray(tool_direction, dtype=float))
+    target_d = target_d / np.linalg.norm(target_d, axis=1, keepdims=True)
+    target = np.concatenate([target_p, DIRECTION_WEIGHT_MM * target_d], axis=1)
+    n = target.shape[0]
+    if initial is None:
+        prefer = np.zeros((n, 5)) if prefer is None else np.broadcast_to(np.asarray(prefer, float), (n, 5))
+        cmd = _rotary_start(machine, target_d, prefer)
+    else:
+        cmd = np.array(initial, dtype=float)
+    cmd = np.atleast_2d(cmd).copy()
+    for _ in range(max_iter):
+        state = _tip_state(machine, cmd, errors, context)
+        r = target - state  # (N, 6)
+        if np.max(np.abs(r)) < tol_mm:
+            break
+        # Jacobian by forward differences, all 5 columns in one batched FK of 5N poses
+        pert = cmd[:, None, :] + np.eye(5)[None] * _STEP  # (N, 5, 5)
+        ctx5 = None if context is None else context.take(np.repeat(np.arange(n), 5))
+        s5 = _tip_state(machine, pert.reshape(-1, 5), errors, ctx5).reshape(n, 5, 6)
+        J = np.swapaxes((s5 - state[:, None, :]) / _STEP[None, :, None], 1, 2)  # (N, 6, 5)
+        JtJ = np.swapaxes(J, 1, 2) @ J
+        Jtr = np.einsum("nij,ni->nj", J, r)
+        cmd = cmd + np.linalg.solve(JtJ + 1e-12 * np.eye(5), Jtr[..., None])[..., 0]
+    residual = np.max(np.abs(target - _tip_state(machine, cmd, errors, context)), axis=1)
+    bad = np.flatnonzero(residual > max(tol_mm, 1e-7))
+    if bad.size:
+        raise ValueError(f"inverse kinematics did not converge for poses {bad[:10].tolist()} "
+                         f"(max residual {residual[bad].max():.3g} mm)")
+    return cmd

@@ -1,0 +1,123 @@
+"""Forward and inverse kinematics by the local product of exponentials (eqs. 4–12).
+
+Joint i moves its link frame relative to the previous one by
+
+    g_{i-1,i}(θ_i) = e^{t̂_{i-1,i}} · e^{ξ̂_D(θ_i)} · e^{ξ̂_I} · e^{ξ̂_i θ_i}          (eq. 12)
+
+with the fixed home offset t_{i-1,i}, the PDGE error motion ξ_D (eq. 8), the PIGE transform
+ξ_I (eqs. 9–11) and the ideal unit twist ξ_i in the joint's own frame. Chains start at the
+base; attachments (cameras, plates, tip) ride on one link. Everything is batched over N poses.
+
+SYNOPSIS
+    >>> from tasks.machine import load_machine
+    >>> from tasks.kinematics import forward
+    >>> m = load_machine("prototype")
+    >>> fk = forward(m, [[0, 0, 0, 10, 30]])          # X Y Z mm, A C deg
+    >>> fk.tool_in_workpiece().shape
+    (1, 4, 4)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tasks import se3
+from tasks.context import PoseContext
+from tasks.error_model import ErrorModel, pige_joint_transforms
+from tasks.machine import AXIS_ORDER, Machine
+
+
+def ideal_joint_motion(machine: Machine, axis: str, theta: np.ndarray) -> np.ndarray:
+    """e^{ξ̂ θ} for one axis: (N,) mm or rad -> (N, 4, 4). Closed forms, no generic exp."""
+    ax = machine.axes[axis]
+    d = np.asarray(ax.direction, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    if ax.is_rotary:
+        # Rodrigues for a unit axis through the frame origin
+        K = se3.skew(d)
+        s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+        R = np.eye(3) + s * K + (1.0 - c) * (K @ K)
+        return se3.from_rotation_translation(R, np.zeros((theta.shape[0], 3)))
+    return se3.translation(theta[:, None] * d)
+
+
+@dataclass
+class ForwardKinematics:
+    """Poses of every link and attachment for a batch of N poses, in the base frame (mm)."""
+
+    machine: Machine
+    link_poses: dict[str, np.ndarray]  # link name -> (N, 4, 4), "base" included
+    attachment_errors: dict[str, np.ndarray]  # attachment -> (N, 6)
+
+    def pose(self, name: str) -> np.ndarray:
+        """Base-frame pose (N, 4, 4) of a link or attachment."""
+        if name in self.link_poses:
+            return self.link_poses[name]
+        att = self.machine.attachments[name]
+        T = self.link_poses[att.link] @ att.pose_in_link
+        if name in self.attachment_errors:
+            T = T @ se3.error_motion(self.attachment_errors[name])
+        return T
+
+    def relative(self, of: str, seen_from: str) -> np.ndarray:
+        """Pose of ``of`` in the frame of ``seen_from``: (N, 4, 4)."""
+        return se3.inverse(self.pose(seen_from)) @ self.pose(of)
+
+    def tool_in_workpiece(self) -> np.ndarray:
+        """g_tw of eq. 12: the dispensing tip in the workpiece frame, (N, 4, 4)."""
+        return self.relative(self.machine.tip, self.machine.workpiece)
+
+    def camera_view(self, camera: str) -> np.ndarray:
+        """T_cam_plate: the plate this camera measures, in the camera frame, (N, 4, 4)."""
+        return self.relative(self.machine.views[camera], camera)
+
+
+def forward(
+    machine: Machine,
+    commands,
+    errors: ErrorModel | None = None,
+    context: PoseContext | None = None,
+) -> ForwardKinematics:
+    """Forward kinematics of N poses.
+
+    commands: (N, 5) X, Y, Z [mm], A, C [deg] in AXIS_ORDER (a single pose (5,) is allowed).
+    errors: the error model (None: the ideal machine). context: approach directions, time and
+    temperature for effects that need them (default: neutral).
+    """
+    cmd = np.atleast_2d(np.asarray(commands, dtype=float))
+    q = machine.commands_to_internal(cmd)
+    n = q.shape[0]
+    errors = errors or ErrorModel.none()
+    context = context or PoseContext.neutral(n)
+    joint_err = errors.joint_error_vectors(machine, q, context)
+    pige = pige_joint_transforms(errors.pige)
+    base = np.broadcast_to(np.eye(4), (n, 4, 4))
+    links = {"base": base}
+    for chain in (machine.tool_chain, machine.workpiece_chain):
+        T = base
+        for axis in chain:
+            T = T @ machine.link_offsets[axis]
+            if axis in joint_err:
+                T = T @ se3.error_motion(joint_err[axis])
+            if axis in pige:
+                T = T @ pige[axis]
+            T = T @ ideal_joint_motion(machine, axis, q[:, AXIS_ORDER.index(axis)])
+            links[axis] = T
+    return ForwardKinematics(machine, links, errors.attachment_error_vectors(machine, q, context))
+
+
+def pose_error(measured: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """Pose residual e = log(nominal⁻¹ · measured) in se(3) (eq. 20): (N, 6) (v mm, w rad)."""
+    return se3.log(se3.inverse(nominal) @ measured)
+
+
+def position_orientation_error(actual: np.ndarray, nominal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tip position error ‖t_a − t_c‖ (mm) and orientation error ‖log(R_a⁻¹ R_c)‖ (rad), per pose.
+
+    The quantities averaged in the seed's Δt and ΔR (§5.2). actual, nominal: (N, 4, 4).
+    """
+    dt = np.linalg.norm(actual[:, :3, 3] - nominal[:, :3, 3], axis=1)
+    dR = se3.rotation_angle(np.swapaxes(actual[:, :3, :3], 1, 2) @ nominal[:, :3, :3])
+    return dt, dR

@@ -89,6 +89,11 @@ def exp(xi: np.ndarray) -> np.ndarray:
     return out
 
 
+def _axial(R: np.ndarray) -> np.ndarray:
+    """(R - R^T)^∨ = 2 sin(θ) n for rotation matrices (..., 3, 3) -> (..., 3)."""
+    return np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+
+
 def log_so3(R: np.ndarray) -> np.ndarray:
     """Rotation vector (rad) of rotation matrices. (..., 3, 3) -> (..., 3).
 
@@ -97,7 +102,7 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=float)
     cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     theta = np.arccos(cos_t)
-    axial = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    axial = _axial(R)
     small = theta < _SMALL_ANGLE
     safe = np.where(small, 1.0, theta)
     # theta / (2 sin theta), with its series near 0
@@ -221,6 +226,6 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     # arccos loses precision near 0; use the sine from the axial vector there
     R = np.asarray(R)
-    axial = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    axial = _axial(R)
     sin_t = np.linalg.norm(axial, axis=-1) / 2.0
     return np.arctan2(sin_t, cos_t)

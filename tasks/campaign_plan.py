@@ -1,0 +1,169 @@
+"""The poses of a measurement campaign, in capture order (§5.2 of the calibration paper).
+
+Stages:
+- ``camera_calibration``: per camera, ``trials`` independent trials of ``images_per_trial``
+  views of its plate held on a tilting fixture (the plate pose relative to the camera is free;
+  the machine stands still). Plate b only turns in its own plane on the A axis, so the fixture
+  is needed to give the tilted views that camera self-calibration requires.
+- ``pdge``: per axis, ``positions`` positions × ``repeats`` repeats; X/Y in 1 mm steps, Z in
+  0.1 mm steps, A/C in 1° steps, centred on home so that the sweep includes zero. Repeats
+  alternate direction (forward, backward, ...), so reversal errors show. Camera 1 measures
+  X/Y/Z/C on plate a, camera 2 measures A on plate b.
+- ``pige``: five-axis poses (A within ±``max_tilt_deg``, C over its stroke) with camera 1 aimed
+  at plate a plus random lateral and height offsets.
+- ``validation``: held-out poses drawn like the ``pige`` ones from an independent stream.
+
+Time: each image takes ``seconds_per_image``; temperature follows a warm-up curve with a slow
+oscillation, so that time and temperature are not collinear.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from tasks import se3
+from tasks.kinematics import forward
+from tasks.machine import AXIS_ORDER, Machine
+
+STAGES = ("camera_calibration", "pdge", "pige", "validation")
+SWEEP_STEP = {"X": 1.0, "Y": 1.0, "Z": 0.1, "A": 1.0, "C": 1.0}  # mm or deg per step (§5.2)
+SWEEP_CAMERA = {"X": "camera1", "Y": "camera1", "Z": "camera1", "C": "camera1", "A": "camera2"}
+
+
+@dataclass(frozen=True)
+class CampaignPlan:
+    """Stage sizes. The defaults are the seed's (§5.2)."""
+
+    calibration_trials: int = 10
+    images_per_trial: int = 15
+    sweep_positions: int = 50
+    sweep_repeats: int = 5
+    pige_poses: int = 300
+    validation_poses: int = 100
+    max_tilt_deg: float = 30.0
+    lateral_offset_mm: float = 10.0
+    height_offset_mm: float = 3.0
+    seconds_per_image: float = 3.0
+
+    @classmethod
+    def small(cls) -> CampaignPlan:
+        """A reduced plan for fast tests."""
+        return cls(calibration_trials=2, images_per_trial=8, sweep_positions=6, sweep_repeats=2,
+                   pige_poses=24, validation_poses=8)
+
+
+def aim_camera(machine: Machine, camera: str, rotary_deg: np.ndarray, offsets_mm: np.ndarray) -> np.ndarray:
+    """Commands (N, 5) that put ``camera`` over the centre of its plate, on the ideal machine.
+
+    rotary_deg: (N, 2) A and C (deg). offsets_mm: (N, 3) added to X, Y, Z. The camera stands on
+    its optical axis at its focus distance from the plate centre. Valid when the camera rides on
+    the tool chain's linear axes (a pure translation of the camera).
+    """
+    n = rotary_deg.shape[0]
+    cmd = np.zeros((n, 5))
+    cmd[:, 3:] = rotary_deg
+    fk = forward(machine, cmd)
+    plate = fk.pose(machine.views[camera])[:, :3, 3]
+    cam = fk.pose(camera)
+    distance = machine.cameras[camera].focus_distance_mm
+    wanted = plate - distance * cam[:, :3, 2]  # camera z is the optical axis
+    cmd[:, :3] = wanted - cam[:, :3, 3] + offsets_mm
+    return cmd
+
+
+def _sweep(machine: Machine, axis: str, plan: CampaignPlan) -> pd.DataFrame:
+    k = np.arange(plan.sweep_positions) - plan.sweep_positions // 2
+    positions = k * SWEEP_STEP[axis]
+    rows = []
+    for r in range(plan.sweep_repeats):
+        order = positions if r % 2 == 0 else positions[::-1]
+        cmd = np.zeros((order.size, 5))
+        cmd[:, AXIS_ORDER.index(axis)] = order
+        rows.append(pd.DataFrame({"repeat": r, **{a: cmd[:, i] for i, a in enumerate(AXIS_ORDER)}}))
+    df = pd.concat(rows, ignore_index=True)
+    df["camera"] = SWEEP_CAMERA[axis]
+    df["group"] = axis
+    return df
+
+
+def five_axis_poses(machine: Machine, n: int, plan: CampaignPlan, rng: np.random.Generator) -> np.ndarray:
+    """(n, 5) commands with camera 1 aimed at plate a: A within ±max_tilt, C uniform, offsets."""
+    lo_c, hi_c = machine.axes["C"].stroke
+    rotary = np.column_stack([
+        rng.uniform(-plan.max_tilt_deg, plan.max_tilt_deg, n),
+        rng.uniform(lo_c, hi_c, n),
+    ])
+    offsets = np.column_stack([
+        rng.uniform(-plan.lateral_offset_mm, plan.lateral_offset_mm, (n, 2)),
+        rng.uniform(-plan.height_offset_mm, plan.height_offset_mm, n),
+    ])
+    return aim_camera(machine, "camera1", rotary, offsets)
+
+
+def fixture_poses(machine: Machine, camera: str, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 4, 4) plate poses in the camera frame for self-calibration views.
+
+    Tilts up to 35° about a random in-plane axis, any in-plane rotation, distance within ±8 % of
+    focus, lateral position spread over the field of view while keeping the plate inside it.
+    """
+    cam = machine.cameras[camera]
+    plate = machine.plates[machine.views[camera]]
+    d = cam.focus_distance_mm * rng.uniform(0.92, 1.08, n)
+    tilt = np.deg2rad(rng.uniform(10, 35, n))
+    tilt_dir = rng.uniform(0, 2 * np.pi, n)
+    spin = rng.uniform(-np.pi, np.pi, n)
+    axis = np.column_stack([np.cos(tilt_dir), np.sin(tilt_dir), np.zeros(n)])
+    # plate faces the camera: rotate 180° about x, then tilt, then spin about the plate normal
+    R = se3.exp_so3(axis * tilt[:, None]) @ se3.rot_x(np.full(n, np.pi)) @ se3.rot_z(spin)
+    half_w = cam.width_px * cam.pixel_size_mm / cam.focal_length_mm / 2 * d
+    half_h = cam.height_px * cam.pixel_size_mm / cam.focal_length_mm / 2 * d
+    r = np.hypot(*plate.half_extent_mm)
+    x = rng.uniform(-1, 1, n) * np.maximum(half_w - 1.15 * r, 0)
+    y = rng.uniform(-1, 1, n) * np.maximum(half_h - 1.15 * r, 0)
+    return se3.from_rotation_translation(R, np.column_stack([x, y, d]))
+
+
+def temperature_at(time_s: np.ndarray, start_c: float = 20.0) -> np.ndarray:
+    """Machine temperature (°C): +1.2 K warm-up (time constant 1 h) plus ±0.25 K, 40 min period."""
+    t = np.asarray(time_s, dtype=float)
+    return start_c + 1.2 * (1.0 - np.exp(-t / 3600.0)) + 0.25 * np.sin(2 * np.pi * t / 2400.0)
+
+
+def plan_campaign(machine: Machine, plan: CampaignPlan, seed: int) -> tuple[pd.DataFrame, dict[int, np.ndarray]]:
+    """All images of a campaign in capture order.
+
+    Returns the manifest rows (image_id, camera, stage, group, repeat, X..C commands, time_s,
+    temperature_c) and, for fixture views, {row index: T_cam_plate (4, 4)}.
+    """
+    rng = np.random.default_rng([seed, 1])
+    parts = []
+    fixture: list[np.ndarray] = []
+    for camera in machine.cameras:
+        poses = fixture_poses(machine, camera, plan.calibration_trials * plan.images_per_trial, rng)
+        fixture.extend(poses)
+        trial = np.repeat(np.arange(plan.calibration_trials), plan.images_per_trial)
+        parts.append(pd.DataFrame({
+            "camera": camera, "stage": "camera_calibration",
+            "group": [f"trial{t:02d}" for t in trial], "repeat": 0,
+            **{a: 0.0 for a in AXIS_ORDER},
+        }))
+    for axis in ("X", "Y", "Z", "A", "C"):
+        df = _sweep(machine, axis, plan)
+        df["stage"] = "pdge"
+        parts.append(df)
+    for stage, n, stream in (("pige", plan.pige_poses, 2), ("validation", plan.validation_poses, 3)):
+        cmd = five_axis_poses(machine, n, plan, np.random.default_rng([seed, stream]))
+        parts.append(pd.DataFrame({
+            "camera": "camera1", "stage": stage, "group": stage, "repeat": 0,
+            **{a: cmd[:, i] for i, a in enumerate(AXIS_ORDER)},
+        }))
+    df = pd.concat(parts, ignore_index=True)
+    df.insert(0, "image_id", [f"img{i:05d}" for i in range(len(df))])
+    df["time_s"] = np.arange(len(df)) * plan.seconds_per_image
+    df["temperature_c"] = temperature_at(df["time_s"].to_numpy())
+    n_fixture = len(fixture)
+    fixture_map = dict(zip(range(n_fixture), fixture, strict=True))
+    return df[["image_id", "camera", "stage", "group", "repeat", *AXIS_ORDER, "time_s", "temperature_c"]], fixture_map

@@ -1,0 +1,88 @@
+"""Statistics of the true errors, as the seed reports them (§5.2, Figs. 10–13).
+
+- Tip error over validation poses: mean/max/std of ‖t_a − t_c‖ (µm) and ‖log(R_a⁻¹ R_c)‖
+  (arcsec), true machine against the nominal model, and the X/Y/Z components.
+- PDGE magnitudes per axis over its sweep: mean of ‖(δx, δy, δz)‖ (µm) and ‖(εx, εy, εz)‖ (arcsec).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from tasks import se3
+from tasks.context import PoseContext
+from tasks.error_model import ARCSEC, UM, ErrorModel
+from tasks.kinematics import forward, position_orientation_error
+from tasks.machine import AXIS_ORDER, Machine
+
+# The seed's published figures (§5.2): before and after compensation.
+SEED_BEFORE = {"position_mean_um": 59.9, "position_max_um": 72.7, "position_std_um": 6.6,
+               "orientation_mean_arcsec": 160.0, "orientation_max_arcsec": 331.0,
+               "orientation_std_arcsec": 77.9}
+SEED_AFTER = {"position_mean_um": 1.80, "position_max_um": 4.90, "position_std_um": 1.1,
+              "orientation_mean_arcsec": 52.9, "orientation_max_arcsec": 140.0,
+              "orientation_std_arcsec": 39.4}
+SEED_PDGE_MEANS = {  # axis: (translational µm, rotational arcsec), Fig. 11
+    "X": (40.2, 224.0), "Y": (24.8, 213.0), "Z": (73.5, 101.0), "A": (6.18, 209.0), "C": (0.720, 253.0),
+}
+
+
+def tip_errors(machine: Machine, commands: np.ndarray, errors: ErrorModel,
+               context: PoseContext | None = None) -> pd.DataFrame:
+    """Per pose: true tip pose against the nominal one, in the workpiece frame.
+
+    Returns position_um, orientation_arcsec and the components dx/dy/dz_um (position difference)
+    and rx/ry/rz_arcsec (rotation vector of R_c⁻¹ R_a).
+    """
+    actual = forward(machine, commands, errors, context).tool_in_workpiece()
+    nominal = forward(machine, commands).tool_in_workpiece()
+    dt, dR = position_orientation_error(actual, nominal)
+    d = (actual[:, :3, 3] - nominal[:, :3, 3]) / UM
+    r = se3.log_so3(np.swapaxes(nominal[:, :3, :3], 1, 2) @ actual[:, :3, :3]) / ARCSEC
+    return pd.DataFrame({
+        "position_um": dt / UM, "orientation_arcsec": dR / ARCSEC,
+        "dx_um": d[:, 0], "dy_um": d[:, 1], "dz_um": d[:, 2],
+        "rx_arcsec": r[:, 0], "ry_arcsec": r[:, 1], "rz_arcsec": r[:, 2],
+    })
+
+
+def summarise(err: pd.DataFrame) -> dict[str, float]:
+    """mean/max/std of position (µm) and orientation (arcsec) errors, keys as in SEED_BEFORE."""
+    out = {}
+    for col, key in (("position_um", "position"), ("orientation_arcsec", "orientation")):
+        unit = "um" if key == "position" else "arcsec"
+        v = err[col].to_numpy()
+        out[f"{key}_mean_{unit}"] = float(v.mean())
+        out[f"{key}_max_{unit}"] = float(v.max())
+        out[f"{key}_std_{unit}"] = float(v.std(ddof=1)) if v.size > 1 else 0.0
+    return out
+
+
+def pdge_magnitudes(machine: Machine, errors: ErrorModel, sweep_commands: dict[str, np.ndarray]) -> pd.DataFrame:
+    """Mean translational (µm) and rotational (arcsec) PDGE magnitude per axis over its sweep.
+
+    sweep_commands: {axis: (n,) positions in command units (mm or deg)}.
+    """
+    rows = []
+    for axis, pos in sweep_commands.items():
+        profile = errors.pdge.get(axis)
+        if profile is None:
+            continue
+        e = profile(machine.axes[axis].to_internal(np.asarray(pos, dtype=float)))
+        rows.append({
+            "axis": axis,
+            "translation_mean_um": float(np.linalg.norm(e[:, :3], axis=1).mean() / UM),
+            "rotation_mean_arcsec": float(np.linalg.norm(e[:, 3:], axis=1).mean() / ARCSEC),
+            "seed_translation_mean_um": SEED_PDGE_MEANS[axis][0],
+            "seed_rotation_mean_arcsec": SEED_PDGE_MEANS[axis][1],
+        })
+    return pd.DataFrame(rows)
+
+
+def sweep_positions(positions: int = 50) -> dict[str, np.ndarray]:
+    """The PDGE sweep positions of each axis (command units), as planned by tasks.campaign_plan."""
+    from tasks.campaign_plan import SWEEP_STEP
+
+    k = np.arange(positions) - positions // 2
+    return {a: k * SWEEP_STEP[a] for a in AXIS_ORDER}

@@ -243,9 +243,7 @@ def project_points_ext(
         return project_points(points_cam_mm, camera)
     p = np.asarray(points_cam_mm, dtype=float)
     xyd = distort_normalised_ext(p[..., :2] / p[..., 2:3], camera.distortion, extra)
-    return np.stack(
-        [camera.fx_px * xyd[..., 0] + camera.cx_px, camera.fy_px * xyd[..., 1] + camera.cy_px], -1
-    )
+    return np.stack([camera.fx_px * xyd[..., 0] + camera.cx_px, camera.fy_px * xyd[..., 1] + camera.cy_px], -1)
 
 
 def undistort_pixels(
@@ -253,9 +251,7 @@ def undistort_pixels(
 ) -> np.ndarray:
     """Exact: pixel coordinates (..., 2) → undistorted normalised coordinates (..., 2)."""
     uv = np.asarray(uv, dtype=float)
-    xy_d = np.stack(
-        [(uv[..., 0] - camera.cx_px) / camera.fx_px, (uv[..., 1] - camera.cy_px) / camera.fy_px], -1
-    )
+    xy_d = np.stack([(uv[..., 0] - camera.cx_px) / camera.fx_px, (uv[..., 1] - camera.cy_px) / camera.fy_px], -1)
     return undistort_normalised(xy_d, camera.distortion, extra)
 
 
@@ -604,10 +600,7 @@ def render_scene(
 
     valid = np.isfinite(PX) & np.isfinite(reach)
     any_valid = (
-        np.isfinite(NX[:-1, :-1])
-        | np.isfinite(NX[:-1, 1:])
-        | np.isfinite(NX[1:, :-1])
-        | np.isfinite(NX[1:, 1:])
+        np.isfinite(NX[:-1, :-1]) | np.isfinite(NX[:-1, 1:]) | np.isfinite(NX[1:, :-1]) | np.isfinite(NX[1:, 1:])
     )
     PXs = np.where(valid, PX, 0.0)
     PYs = np.where(valid, PY, 0.0)
@@ -661,9 +654,7 @@ def render_scene(
         if sub.size:
             dx, dy, dist = _nearest_dot_distance(X[sub], Y[sub], plate)
             dx[dist == 0.0] = 1.0  # any direction will do at the exact centre
-            dc[sub] = coverage(
-                sub, (dist - R).astype(np.float32), dx.astype(np.float32), dy.astype(np.float32)
-            )
+            dc[sub] = coverage(sub, (dist - R).astype(np.float32), dx.astype(np.float32), dy.astype(np.float32))
         pc = np.ones_like(dc)
         if finite:
             sub = np.nonzero(edge_near[ti, tj] | ~ok.all(axis=(1, 2)))[0]

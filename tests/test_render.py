@@ -8,6 +8,7 @@ camera 1 sees plate "a" (2.5 mm dots, 5 mm pitch) from ~280 mm, camera 2 sees pl
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -74,7 +75,7 @@ def centroids(img: np.ndarray, centres: np.ndarray, half: int, background: float
 def window_half(camera: CameraModel, plate: DotPlate, z_mm: float) -> int:
     """Half window: dot radius + blur margin, well short of the neighbouring dots (px)."""
     scale = camera.fx_px / z_mm  # px per mm
-    return int(round(scale * (plate.dot_diameter_mm / 2 + 0.3 * (plate.pitch_mm - plate.dot_diameter_mm))))
+    return round(scale * (plate.dot_diameter_mm / 2 + 0.3 * (plate.pitch_mm - plate.dot_diameter_mm)))
 
 
 def ellipse_centres(camera: CameraModel, plate: DotPlate, T: np.ndarray) -> np.ndarray:
@@ -208,7 +209,7 @@ def test_defocus_blur_grows_with_distance_from_focus():
         widths.append(edge_width_px(scene, centre, 70, IDEAL.dark_level, IDEAL.light_level))
         s = float(blur_sigma_px(cam, IDEAL, 80.0 + dz))
         predicted.append(2.563 * math.sqrt(s * s + 1.0 / 12.0))  # 10–90 % width of a Gaussian edge
-    assert all(b > a * 1.2 for a, b in zip(widths, widths[1:], strict=False)), widths
+    assert all(b > a * 1.2 for a, b in itertools.pairwise(widths)), widths
     assert np.allclose(widths, predicted, rtol=0.15), (widths, predicted)
     # closer than focus blurs too
     T = pose([0.0, 0.0, 78.0])

@@ -1,0 +1,86 @@
+"""The campaign folder: the input contract a lab's capture software writes.
+
+Layout (documented for other software in docs/campaign-format.md)::
+
+    <campaign>/
+      campaign.json      metadata: format version, campaign_id, machine geometry, cameras
+                         (nominal sensor and lens), plates, which camera views which plate
+      manifest.csv       one row per image (MANIFEST_COLUMNS)
+      images/<camera>/<image_id>.png
+      truth/             simulated campaigns only; no analysis stage reads it
+
+Writes are atomic: files go to a temporary name and are renamed into place.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+FORMAT_VERSION = 1
+METADATA_FILE = "campaign.json"
+MANIFEST_FILE = "manifest.csv"
+TRUTH_DIR = "truth"
+MANIFEST_COLUMNS = (
+    "image_id", "path", "camera", "stage", "group", "repeat",
+    "X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg", "timestamp", "temperature_c",
+)
+COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_parquet(path: Path, df: pd.DataFrame, metadata: dict | None = None) -> None:
+    """Write a DataFrame as one Parquet file atomically, with ``metadata`` (JSON) in its schema."""
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    if metadata:
+        meta = dict(table.schema.metadata or {})
+        meta[b"fivecal"] = json.dumps(metadata, default=str).encode()
+        table = table.replace_schema_metadata(meta)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        pq.write_table(table, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_metadata(folder: Path, metadata: dict) -> None:
+    atomic_write_text(Path(folder) / METADATA_FILE, json.dumps(metadata, indent=1))
+
+
+def write_manifest(folder: Path, manifest: pd.DataFrame) -> None:
+    missing = [c for c in MANIFEST_COLUMNS if c not in manifest.columns]
+    if missing:
+        raise ValueError(f"manifest lacks columns {missing}")
+    atomic_write_text(Path(folder) / MANIFEST_FILE, manifest[list(MANIFEST_COLUMNS)].to_csv(index=False))
+
+
+def image_relpath(camera: str, image_id: str) -> str:
+    return f"images/{camera}/{image_id}.png"

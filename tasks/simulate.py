@@ -1,0 +1,150 @@
+"""The virtual machine playing a measurement campaign: truth per image, and its rendering.
+
+``simulate_truth`` runs the true machine (description + error model + effects) through the
+planned poses in capture order and returns, per image, the true plate pose in the camera frame,
+the camera intrinsics of that exposure and the projected dot centres. ``render_image`` turns
+one row of that truth into the 8-bit image the camera would record. No Prefect here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from tasks.camera_model import CameraModel
+from tasks.campaign_io import COMMAND_COLUMNS, image_relpath
+from tasks.context import PoseContext, approach_directions
+from tasks.effects import camera_changes
+from tasks.error_model import ErrorModel
+from tasks.kinematics import forward
+from tasks.machine import AXIS_ORDER, Machine
+from tasks.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
+
+SIZES = {"full": 1, "small": 4}  # sensor binning factor per image size
+CAMPAIGN_EPOCH = pd.Timestamp("2026-01-05T08:00:00Z")
+
+
+@dataclass
+class CampaignTruth:
+    """Per-image truth of a simulated campaign (N images, in manifest order).
+
+    T_cam_plate: (N, 4, 4) mm. focal_scale: (N,). centres_px: (N, rows*cols, 2) true projected
+    dot centres. in_view: (N,) whole plate inside the image. extra_distortion: {camera: dict|None}.
+    cameras: {camera: CameraModel} true intrinsics at the campaign's image size.
+    """
+
+    T_cam_plate: np.ndarray
+    focal_scale: np.ndarray
+    centres_px: list[np.ndarray]
+    in_view: np.ndarray
+    extra_distortion: dict[str, dict | None]
+    cameras: dict[str, CameraModel]
+
+
+def camera_for_image(camera: CameraModel, focal_scale: float) -> CameraModel:
+    """Intrinsics of one exposure: the focal length scaled by a focal-drift effect."""
+    if focal_scale == 1.0:
+        return camera
+    return replace(camera, focal_length_mm=camera.focal_length_mm * float(focal_scale))
+
+
+def manifest_from_plan(plan: pd.DataFrame) -> pd.DataFrame:
+    """Manifest rows (see tasks.campaign_io.MANIFEST_COLUMNS) from a campaign plan."""
+    m = pd.DataFrame({
+        "image_id": plan["image_id"],
+        "path": [image_relpath(c, i) for c, i in zip(plan["camera"], plan["image_id"], strict=True)],
+        "camera": plan["camera"], "stage": plan["stage"], "group": plan["group"], "repeat": plan["repeat"],
+    })
+    for col, axis in zip(COMMAND_COLUMNS, AXIS_ORDER, strict=True):
+        m[col] = plan[axis].round(6)
+    stamps = CAMPAIGN_EPOCH + pd.to_timedelta(plan["time_s"], unit="s")
+    m["timestamp"] = stamps.dt.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+    m["temperature_c"] = plan["temperature_c"].round(4)
+    return m
+
+
+def simulate_truth(machine: Machine, errors: ErrorModel, plan: pd.DataFrame,
+                   fixture: dict[int, np.ndarray], size: str = "full") -> CampaignTruth:
+    """Truth of every planned image.
+
+    plan: rows in capture order (tasks.campaign_plan.plan_campaign). fixture: {row: T_cam_plate}
+    for the views on the calibration fixture (the machine does not produce those poses).
+    """
+    commands = plan[list(AXIS_ORDER)].to_numpy(dtype=float)
+    n = commands.shape[0]
+    context = PoseContext(approach_directions(commands), plan["time_s"].to_numpy(float),
+                          plan["temperature_c"].to_numpy(float))
+    fk = forward(machine, commands, errors, context)
+    q = machine.commands_to_internal(commands)
+    cameras = {name: cam.scaled(SIZES[size]) for name, cam in machine.cameras.items()}
+    T = np.empty((n, 4, 4))
+    focal = np.ones(n)
+    extra: dict[str, dict | None] = {}
+    camera_col = plan["camera"].to_numpy()
+    for name in machine.cameras:
+        rows = np.flatnonzero(camera_col == name)
+        T[rows] = fk.camera_view(name)[rows]
+        ch = camera_changes(errors.effects, name, machine, q, context)
+        focal[rows] = ch["focal_scale"][rows]
+        extra[name] = ch["extra_distortion"]
+    for row, pose in fixture.items():
+        T[row] = pose
+    centres, in_view = [], np.zeros(n, dtype=bool)
+    for i in range(n):
+        name = camera_col[i]
+        cam = camera_for_image(cameras[name], focal[i])
+        plate = machine.plates[machine.views[name]]
+        centres.append(true_dot_centres(cam, plate, T[i], extra_distortion=_extra(extra[name])))
+        in_view[i] = plate_in_view(cam, plate, T[i], extra_distortion=_extra(extra[name]))
+    return CampaignTruth(T, focal, centres, in_view, extra, cameras)
+
+
+def _extra(d: dict | None):
+    return None if not d else tuple(d[k] for k in ("k4", "s1", "s2", "s3", "s4"))
+
+
+def imaging_conditions(seed: int, index: int) -> ImagingConditions:
+    """Photometry of one exposure: small seeded variations of light level and gradient."""
+    rng = np.random.default_rng([seed, 7, index])
+    return ImagingConditions(
+        light_level=float(rng.uniform(185, 215)),
+        gradient=float(rng.uniform(0.02, 0.08)),
+        gradient_angle_deg=float(rng.uniform(0, 360)),
+    )
+
+
+def render_image(machine: Machine, truth: CampaignTruth, camera: str, index: int, seed: int) -> np.ndarray:
+    """The uint8 image of row ``index``, deterministic from (seed, index)."""
+    cam = camera_for_image(truth.cameras[camera], truth.focal_scale[index])
+    plate = machine.plates[machine.views[camera]]
+    return render_plate_image(cam, plate, truth.T_cam_plate[index], imaging_conditions(seed, index),
+                              seed=int(np.random.default_rng([seed, 11, index]).integers(2**63)),
+                              extra_distortion=_extra(truth.extra_distortion[camera]))
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """Lossless PNG bytes of an 8-bit image (fast compression level)."""
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def truth_tables(plan: pd.DataFrame, truth: CampaignTruth, machine: Machine) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Parquet-ready truth: per image (pose, focal scale, in view) and per dot (u, v px)."""
+    n = len(plan)
+    images = pd.DataFrame({"image_id": plan["image_id"], "camera": plan["camera"],
+                           "focal_scale": truth.focal_scale, "in_view": truth.in_view})
+    flat = truth.T_cam_plate[:, :3, :].reshape(n, 12)
+    for k, (i, j) in enumerate((i, j) for i in range(3) for j in range(4)):
+        images[f"T{i}{j}"] = flat[:, k]
+    dots = []
+    for i in range(n):
+        plate = machine.plates[machine.views[plan["camera"].iloc[i]]]
+        rc = plate.row_col()
+        dots.append(pd.DataFrame({"image_id": plan["image_id"].iloc[i], "row": rc[:, 0], "col": rc[:, 1],
+                                  "u_px": truth.centres_px[i][:, 0], "v_px": truth.centres_px[i][:, 1]}))
+    return images, pd.concat(dots, ignore_index=True)

@@ -101,8 +101,8 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     """
     R = np.asarray(R, dtype=float)
     cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos_t)
     axial = _axial(R)
+    theta = np.arctan2(np.linalg.norm(axial, axis=-1) / 2.0, cos_t)  # arccos loses digits near 0 and pi
     small = theta < _SMALL_ANGLE
     safe = np.where(small, 1.0, theta)
     # theta / (2 sin theta), with its series near 0
@@ -112,7 +112,9 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     near_pi = theta > np.pi - 1e-3
     if np.any(near_pi):
         Rp = R[near_pi]
-        S = (Rp + np.eye(3)) / 2.0  # = n n^T for theta = pi (up to the cos term)
+        c = cos_t[near_pi][:, None, None]
+        # symmetric part of Rodrigues: (R + R^T)/2 = cos(t) I + (1 - cos(t)) n n^T
+        S = ((Rp + np.swapaxes(Rp, -1, -2)) / 2.0 - c * np.eye(3)) / (1.0 - c)
         diag = np.diagonal(S, axis1=-2, axis2=-1)
         k = np.argmax(diag, axis=-1)
         col = np.take_along_axis(S, k[:, None, None].repeat(3, axis=1), axis=2)[..., 0]
@@ -223,9 +225,6 @@ def pose_from_vector(p: np.ndarray) -> np.ndarray:
 
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Angle (rad) of rotation matrices (..., 3, 3): the norm of their log."""
-    cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    # arccos loses precision near 0; use the sine from the axial vector there
     R = np.asarray(R)
-    axial = _axial(R)
-    sin_t = np.linalg.norm(axial, axis=-1) / 2.0
-    return np.arctan2(sin_t, cos_t)
+    cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    return np.arctan2(np.linalg.norm(_axial(R), axis=-1) / 2.0, cos_t)  # arccos loses digits near 0 and pi

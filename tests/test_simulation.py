@@ -1,0 +1,86 @@
+"""The virtual machine: the prototype's error magnitudes, the campaign plan, deterministic images."""
+
+import numpy as np
+import pytest
+
+from tasks.campaign_plan import CampaignPlan, five_axis_poses, plan_campaign
+from tasks.effects import parse_effect
+from tasks.machine import load_machine
+from tasks.prototype_errors import load_prototype_errors
+from tasks.simulate import encode_png, manifest_from_plan, render_image, simulate_truth
+from tasks.truth_stats import SEED_BEFORE, summarise, tip_errors
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine("prototype")
+
+
+def test_prototype_reproduces_the_seeds_before_compensation_errors(machine):
+    cmds = five_axis_poses(machine, 100, CampaignPlan(), np.random.default_rng([0, 3]))
+    stats = summarise(tip_errors(machine, cmds, load_prototype_errors()))
+    assert stats["position_mean_um"] == pytest.approx(SEED_BEFORE["position_mean_um"], rel=0.10)
+    assert stats["orientation_mean_arcsec"] == pytest.approx(SEED_BEFORE["orientation_mean_arcsec"], rel=0.15)
+
+
+def test_statistics_hold_on_independent_validation_poses(machine):
+    cmds = five_axis_poses(machine, 300, CampaignPlan(), np.random.default_rng([99, 3]))
+    stats = summarise(tip_errors(machine, cmds, load_prototype_errors()))
+    assert stats["position_mean_um"] == pytest.approx(59.9, rel=0.10)
+    assert stats["orientation_mean_arcsec"] == pytest.approx(160.0, rel=0.15)
+
+
+@pytest.fixture(scope="module")
+def default_plan(machine):
+    return plan_campaign(machine, CampaignPlan(), seed=0)
+
+
+def test_default_plan_has_the_seeds_stage_sizes(default_plan):
+    plan, fixture = default_plan
+    counts = plan.groupby(["stage", "camera"]).size().to_dict()
+    assert counts[("camera_calibration", "camera1")] == 150 and counts[("camera_calibration", "camera2")] == 150
+    assert counts[("pige", "camera1")] == 300 and counts[("validation", "camera1")] == 100
+    sweeps = plan[plan.stage == "pdge"].groupby("group").size().to_dict()
+    assert sweeps == {"X": 250, "Y": 250, "Z": 250, "A": 250, "C": 250}
+    assert len(fixture) == 300
+    per_trial = plan[plan.stage == "camera_calibration"].groupby(["camera", "group"]).size()
+    assert per_trial.eq(15).all() and len(per_trial) == 20
+
+
+def test_sweeps_step_as_the_seed_and_alternate_direction(default_plan):
+    plan, _ = default_plan
+    for axis, step in {"X": 1.0, "Y": 1.0, "Z": 0.1, "A": 1.0, "C": 1.0}.items():
+        s = plan[(plan.stage == "pdge") & (plan.group == axis)]
+        first = s[s.repeat == 0][axis].to_numpy()
+        assert np.allclose(np.diff(first), step) and 0.0 in first and len(first) == 50
+        assert np.allclose(s[s.repeat == 1][axis].to_numpy(), first[::-1])
+        others = [a for a in "XYZAC" if a != axis]
+        assert np.allclose(s[others].to_numpy(), 0.0)
+
+
+def test_every_planned_view_keeps_the_whole_plate_in_the_image(machine, default_plan):
+    plan, fixture = default_plan
+    errors = load_prototype_errors()
+    truth = simulate_truth(machine, errors, plan, fixture, size="full")
+    assert truth.in_view.all()
+
+
+def test_same_seed_gives_byte_identical_images(machine):
+    plan, fixture = plan_campaign(machine, CampaignPlan.small(), seed=5)
+    errors = load_prototype_errors()
+    errors.effects = [parse_effect("focal_drift:ppm_per_mm=40")]
+    truth = simulate_truth(machine, errors, plan, fixture, size="small")
+    rows = [0, 40, len(plan) - 1]
+    a = [encode_png(render_image(machine, truth, plan.camera.iloc[i], i, seed=5)) for i in rows]
+    b = [encode_png(render_image(machine, truth, plan.camera.iloc[i], i, seed=5)) for i in rows]
+    c = [encode_png(render_image(machine, truth, plan.camera.iloc[i], i, seed=6)) for i in rows]
+    assert a == b
+    assert all(x != y for x, y in zip(a, c, strict=True))
+
+
+def test_manifest_carries_commands_time_and_temperature(machine):
+    plan, _ = plan_campaign(machine, CampaignPlan.small(), seed=1)
+    m = manifest_from_plan(plan)
+    assert list(m.columns[:6]) == ["image_id", "path", "camera", "stage", "group", "repeat"]
+    assert m.timestamp.is_monotonic_increasing and m.timestamp.str.endswith("Z").all()
+    assert m.temperature_c.between(19.0, 22.0).all() and m.temperature_c.nunique() > 10

@@ -18,7 +18,7 @@ def simulate(
     out: Annotated[Path, typer.Argument(help="campaign folder to create")],
     seed: Annotated[int, typer.Option(help="seed of poses, noise and images")] = 0,
     size: Annotated[str, typer.Option(help="image size: full (3072x2048) or small (768x512)")] = "full",
-    effect: Annotated[list[str] | None, typer.Option(help="inject an effect: family:key=value,... (repeatable)")] = None,
+    effect: Annotated[list[str] | None, typer.Option(help="inject an effect: family:key=value,...")] = None,
     plan: Annotated[str, typer.Option(help="stage sizes: default (the seed's) or small (tests)")] = "default",
     overwrite: Annotated[bool, typer.Option(help="replace an existing campaign folder")] = False,
 ) -> None:

@@ -35,6 +35,7 @@ guide-way waviness, or harmonics of a rotary axis). The constant part is kept (t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -79,11 +80,18 @@ def pige_unit(name: str) -> str:
     return "arcsec" if pige_is_angle(name) else "um"
 
 
-def pige_joint_transforms(pige: dict[str, float], n: int | None = None) -> dict[str, np.ndarray]:
+def pige_joint_transforms(pige: dict[str, float]) -> dict[str, np.ndarray]:
     """Constant PIGE transforms e^{ξ_I} per joint (eqs. 9–11), values in mm / rad.
 
-    Returns {joint: (4, 4)} for joints that have at least one PIGE.
+    Returns {joint: (4, 4)} for joints that have at least one PIGE. Cached (they are constant):
+    the returned arrays are shared and must not be modified.
     """
+    return _pige_joint_transforms(tuple(sorted(pige.items())))
+
+
+@lru_cache(maxsize=64)
+def _pige_joint_transforms(items: tuple) -> dict[str, np.ndarray]:
+    pige = dict(items)
     out: dict[str, np.ndarray] = {}
     for name, (joint, k) in PIGE_SCREWS.items():
         value = pige.get(name, 0.0)
@@ -124,8 +132,10 @@ class AxisProfile:
             basis = np.polynomial.chebyshev.chebvander(s, self.chebyshev.shape[1])[..., 1:]  # (N, K)
             out += basis @ self.chebyshev.T
         if self.sine_wavelength.size:
-            arg = 2.0 * np.pi * pos[..., None, None] / self.sine_wavelength + self.sine_phase  # (N, 6, M)
-            out += np.sum(self.sine_amplitude * np.sin(arg), axis=-1)
+            # a sin(w x + p) = sin(w x) (a cos p) + cos(w x) (a sin p): trig on (N, M) only
+            wx = 2.0 * np.pi * pos[..., None] / self.sine_wavelength  # (N, M)
+            out += np.sin(wx) @ (self.sine_amplitude * np.cos(self.sine_phase)).T
+            out += np.cos(wx) @ (self.sine_amplitude * np.sin(self.sine_phase)).T
         return out
 
     def scaled(self, translation: float, rotation: float) -> AxisProfile:

@@ -93,17 +93,19 @@ def forward(
     context = context or PoseContext.neutral(n)
     joint_err = errors.joint_error_vectors(machine, q, context)
     pige = pige_joint_transforms(errors.pige)
-    base = np.broadcast_to(np.eye(4), (n, 4, 4))
-    links = {"base": base}
+    links = {"base": np.broadcast_to(np.eye(4), (n, 4, 4))}
     for chain in (machine.tool_chain, machine.workpiece_chain):
-        T = base
+        T = None
         for axis in chain:
-            T = T @ machine.link_offsets[axis]
-            if axis in joint_err:
-                T = T @ se3.error_motion(joint_err[axis])
+            # joint factor of eq. 12, built right to left: e^{ξ_D} e^{ξ_I} e^{ξθ}
+            J = ideal_joint_motion(machine, axis, q[:, AXIS_ORDER.index(axis)])
             if axis in pige:
-                T = T @ pige[axis]
-            T = T @ ideal_joint_motion(machine, axis, q[:, AXIS_ORDER.index(axis)])
+                J = pige[axis] @ J
+            if axis in joint_err:
+                J = se3.error_motion(joint_err[axis]) @ J
+            # the home offset e^{t̂} is a pure translation: left-multiplying adds it to the translation
+            J[:, :3, 3] += machine.link_offsets[axis][:3, 3]
+            T = J if T is None else T @ J
             links[axis] = T
     return ForwardKinematics(machine, links, errors.attachment_error_vectors(machine, q, context))
 

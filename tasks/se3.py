@@ -214,8 +214,20 @@ def error_motion(e: np.ndarray) -> np.ndarray:
     Returns (..., 4, 4).
     """
     e = np.asarray(e, dtype=float)
-    R = rot_x(e[..., 3]) @ rot_y(e[..., 4]) @ rot_z(e[..., 5])
-    return from_rotation_translation(R, e[..., :3])
+    ca, cb, cc = np.cos(e[..., 3]), np.cos(e[..., 4]), np.cos(e[..., 5])
+    sa, sb, sc = np.sin(e[..., 3]), np.sin(e[..., 4]), np.sin(e[..., 5])
+    out = np.zeros((*e.shape[:-1], 4, 4))
+    # Rx(a) Ry(b) Rz(c), multiplied out
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2] = cb * cc, -cb * sc, sb
+    out[..., 1, 0] = ca * sc + sa * sb * cc
+    out[..., 1, 1] = ca * cc - sa * sb * sc
+    out[..., 1, 2] = -sa * cb
+    out[..., 2, 0] = sa * sc - ca * sb * cc
+    out[..., 2, 1] = sa * cc + ca * sb * sc
+    out[..., 2, 2] = ca * cb
+    out[..., :3, 3] = e[..., :3]
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def pose_from_vector(p: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from tasks.context import PoseContext, approach_directions
 from tasks.effects import parse_effect
-from tasks.error_model import ARCSEC, UM, PIGE_SCREWS
+from tasks.error_model import ARCSEC, PIGE_SCREWS, UM
 from tasks.inverse_kinematics import inverse
 from tasks.kinematics import forward
 from tasks.machine import AXIS_ORDER, load_machine
@@ -23,9 +23,9 @@ def errors():
     return load_prototype_errors()
 
 
-def homogeneous(R=np.eye(3), p=(0.0, 0.0, 0.0)):
+def homogeneous(R=None, p=(0.0, 0.0, 0.0)):
     T = np.eye(4)
-    T[:3, :3] = R
+    T[:3, :3] = np.eye(3) if R is None else R
     T[:3, 3] = p
     return T
 

@@ -1,0 +1,26 @@
+# Quick start:  make demo   (set up everything, then run the main job on the demo campaign)
+#               make test   (set up everything, then run the test suite)
+PYTHON ?= python3
+VENV := .venv
+STAMP := $(VENV)/.installed
+
+.PHONY: setup demo test lint bench
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV)/bin/python -m pip install --quiet -e ".[dev]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/fivecal demo
+
+test: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/pytest -n 2
+
+bench: $(STAMP)
+	$(VENV)/bin/python bench/bench_kinematics.py
+	$(VENV)/bin/python bench/bench_render.py

@@ -53,6 +53,9 @@ TILE_PX = 16
 
 _BLUR_STRIP_TILES = 8
 
+MAX_BLUR_SIGMA_PX = 50.0
+"""Blur σ is capped here (px): only reached for a plate almost touching the lens."""
+
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))  # 2.3548...
 
 
@@ -372,6 +375,13 @@ def true_dot_centres(
     return project_points_ext(_plate_to_cam(plate.dot_centres_mm(), T), camera, extra_distortion)
 
 
+def plate_faces_camera(T_cam_plate: np.ndarray) -> bool:
+    """True if the camera centre is on the printed (+Z_plate) side of the plate plane."""
+    T = _check_pose(T_cam_plate)
+    # cosine of the viewing angle must exceed 1e-9 (exactly edge-on counts as not facing)
+    return float(np.dot(T[:3, 2], T[:3, 3])) < -1e-9 * float(np.linalg.norm(T[:3, 3]))
+
+
 def plate_in_view(
     camera: CameraModel,
     plate: DotPlate,
@@ -382,9 +392,12 @@ def plate_in_view(
     n_rim: int = 32,
 ) -> bool:
     """True if every dot, rim included, projects inside the image (at least ``border_px`` px from
-    the outer pixel edges) and lies in front of the camera.  The rim is sampled at ``n_rim``
-    points per dot."""
+    the outer pixel edges), lies in front of the camera, and the printed face (+Z_plate) faces
+    the camera (a plate seen from behind or edge-on shows no dots).  The rim is sampled at
+    ``n_rim`` points per dot."""
     T = _check_pose(T_cam_plate)
+    if not plate_faces_camera(T):
+        return False
     R = plate.dot_diameter_mm / 2.0
     a = np.linspace(0.0, 2.0 * np.pi, n_rim, endpoint=False)
     rim = np.stack([R * np.cos(a), R * np.sin(a), np.zeros_like(a)], -1)
@@ -439,6 +452,7 @@ def _edge_coverage(t_in: np.ndarray, gu: np.ndarray, gv: np.ndarray) -> np.ndarr
     np.divide(np.float32(1.0), inv_n, out=inv_n)
     lo = np.maximum(ax, ay)
     lo *= inv_n
+    np.maximum(lo, np.float32(0.70710677), out=lo)  # a unit vector's larger component; guards g = 0
     sm = np.minimum(ax, ay, out=ax)
     sm *= inv_n
     sm += np.float32(1e-6)
@@ -570,6 +584,9 @@ def render_scene(
 
     # homography normalised image (x, y, 1) -> plate (X, Y, 1) / Z
     H = np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]])
+    if abs(float(np.dot(T[:3, 2], T[:3, 3]))) < 1e-9 * max(1.0, float(np.linalg.norm(T[:3, 3]))):
+        # the plate plane contains the projection centre: seen exactly edge-on, nothing visible
+        return np.full((camera.height_px, camera.width_px), L_bg, np.float32)
     Hi = np.linalg.inv(H)
 
     def to_plate(xy):
@@ -615,6 +632,9 @@ def render_scene(
         outside = np.zeros_like(valid)
     dot_near = valid & ~outside & (np.abs(dd - R) < reach)
     in_dot = valid & ~outside & (dd + reach <= R)
+    if not plate_faces_camera(T):  # seen from behind: a blank plate
+        dot_near[...] = False
+        in_dot[...] = False
     fine = dot_near | edge_near | (any_valid & ~valid)
 
     tile_val = np.full((nty, ntx), L_bg, np.float32)
@@ -632,8 +652,8 @@ def render_scene(
         if not all_ok:
             X[~ok] = 0.0
             Y[~ok] = 0.0
-        J = np.stack([dXdu, dYdu, dXdv, dYdv])[:, ti, tj].astype(np.float32)
-        J = np.nan_to_num(J)[:, :, None, None]  # 4 × (N, 1, 1), mm/px
+        J = np.clip(np.nan_to_num(np.stack([dXdu, dYdu, dXdv, dYdv])[:, ti, tj]), -1e6, 1e6)
+        J = J.astype(np.float32)[:, :, None, None]  # 4 × (N, 1, 1), mm/px (clipped: grazing views)
 
         def coverage(sub, d_mm, nx, ny):
             """Pixel coverage of the inner side of an edge at signed distance d_mm (mm, positive
@@ -675,6 +695,25 @@ def render_scene(
     return canvas[: camera.height_px, : camera.width_px]
 
 
+def _gaussian_blur(src: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur (σ px, reflecting borders).  For σ ≥ 4 the work is done on a ``f``× block-
+    averaged copy (f = 2^⌊log2(σ/2)⌋) and linearly upsampled, with the blur reduced so that
+    box + Gaussian + tent variances add up to σ² (first moments exact, σ within ~5 %)."""
+    if sigma < 4.0:
+        return cv2.GaussianBlur(src, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    f = 2 ** math.floor(math.log2(sigma / 2.0))
+    h, w = src.shape
+    ph, pw = -h % f, -w % f
+    if ph or pw:
+        src = cv2.copyMakeBorder(src, 0, ph, 0, pw, cv2.BORDER_REFLECT)
+    small = cv2.resize(src, ((w + pw) // f, (h + ph) // f), interpolation=cv2.INTER_AREA)
+    # per axis: block f²/12, linear interpolation f²/6 on average, so σ_small² f² = σ² − f²/4
+    s_small = math.sqrt(sigma * sigma - f * f / 4.0) / f
+    small = cv2.GaussianBlur(small, (0, 0), s_small, borderType=cv2.BORDER_REFLECT)
+    big = cv2.resize(small, (w + pw, h + ph), interpolation=cv2.INTER_LINEAR)
+    return big[:h, :w]
+
+
 def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
     """Blur ``canvas`` in place where it is not locally uniform (near ``fine`` tiles).
 
@@ -687,7 +726,7 @@ def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
         return
     focus = camera.focus_distance_mm
     Z = np.where(np.isfinite(NZ), NZ, focus)
-    s2n = blur_sigma_px(camera, conditions, Z) ** 2  # (nty+1, ntx+1) σ² at tile corners
+    s2n = np.minimum(blur_sigma_px(camera, conditions, Z), MAX_BLUR_SIGMA_PX) ** 2  # σ² at tile corners
     smax_all = float(np.sqrt(s2n.max()))
     if smax_all < 1e-3:
         return
@@ -705,7 +744,7 @@ def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
         pad = math.ceil(4.0 * sk) + 1
         i0, i1, j0, j1 = bi0 * Tp, bi1 * Tp, bj0 * Tp, bj1 * Tp
         y0, y1, x0, x1 = max(i0 - pad, 0), min(i1 + pad, hc), max(j0 - pad, 0), min(j1 + pad, wc)
-        b = cv2.GaussianBlur(canvas[y0:y1, x0:x1], (0, 0), sk, borderType=cv2.BORDER_REFLECT)
+        b = _gaussian_blur(canvas[y0:y1, x0:x1], sk)
         canvas[i0:i1, j0:j1] = b[i0 - y0 : i1 - y0, j0 - x0 : j1 - x0]
         return
 
@@ -747,7 +786,7 @@ def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
             i0, i1, j0, j1 = si.min(), si.max() + 1, sj.min(), sj.max() + 1
             y0, y1 = max(i0 * Tp - pad, 0), min(i1 * Tp + pad, hc)
             x0, x1 = max(j0 * Tp - pad, 0), min(j1 * Tp + pad, wc)
-            b = cv2.GaussianBlur(canvas[y0:y1, x0:x1], (0, 0), float(sk), borderType=cv2.BORDER_REFLECT)
+            b = _gaussian_blur(canvas[y0:y1, x0:x1], float(sk))
             bv = _tile_view(b[i0 * Tp - y0 : i1 * Tp - y0, j0 * Tp - x0 : j1 * Tp - x0], Tp)
             bt[m] = bv[si - i0, sj - j0]
         # hat weight of level k, linear in σ²
@@ -806,19 +845,22 @@ def render_plate_image(
     noiseless: skip read and shot noise (gain maps and 8-bit quantisation still applied).
     """
     img = render_scene(camera, plate, T_cam_plate, conditions, extra_distortion=extra_distortion)
-    g = gain_map(camera, conditions)
-    img = np.multiply(img, g)  # new contiguous (H, W) float32
+    img = np.ascontiguousarray(img)  # a view of the tile canvas; copied only if it was padded
+    if conditions.vignetting != 0.0 or conditions.gradient != 0.0:
+        np.multiply(img, gain_map(camera, conditions), out=img)
     if not noiseless:
-        var = np.maximum(img, np.float32(0.0))
+        noise = standard_normal_image(np.random.default_rng(seed), img.shape)
         gain_e = conditions.shot_noise_gain_e_per_dn
+        read2 = np.float32(conditions.read_noise_dn**2)
         if gain_e is not None and gain_e > 0:
-            var *= np.float32(1.0 / gain_e)
+            sd = np.maximum(img, np.float32(0.0))
+            sd *= np.float32(1.0 / gain_e)
+            sd += read2
+            np.sqrt(sd, out=sd)
+            noise *= sd
         else:
-            var[...] = 0.0
-        var += np.float32(conditions.read_noise_dn**2)
-        np.sqrt(var, out=var)
-        var *= standard_normal_image(np.random.default_rng(seed), img.shape)
-        img += var
+            noise *= np.sqrt(read2)
+        img += noise
     np.rint(img, out=img)
     np.clip(img, 0.0, 255.0, out=img)
     return img.astype(np.uint8)

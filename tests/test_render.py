@@ -366,3 +366,16 @@ def test_conditions_are_frozen_and_levels_swap():
         c.light_level = 1.0  # type: ignore[misc]
     assert c.plate_and_dot_levels(PLATE_A) == (c.light_level, c.dark_level)
     assert c.plate_and_dot_levels(dataclasses.replace(PLATE_A, dark_dots=False)) == (c.dark_level, c.light_level)
+
+
+def test_back_facing_and_edge_on_plates_show_no_dots():
+    cam = CAM1.scaled(4)
+    back = pose([0.0, 0.0, 280.0], 180.0)  # printed face pointing away from the camera
+    assert not plate_in_view(cam, PLATE_A, back)
+    scene = render_scene(cam, PLATE_A, back, IDEAL)
+    inside = scene[round(cam.cy_px) - 20 : round(cam.cy_px) + 20, round(cam.cx_px) - 20 : round(cam.cx_px) + 20]
+    assert np.all(inside == IDEAL.light_level)  # blank back of the plate
+    edge_on = pose([0.0, 0.0, 280.0], 90.0)
+    assert not plate_in_view(cam, PLATE_A, edge_on)
+    img = render_plate_image(cam, PLATE_A, edge_on, IDEAL, seed=0)
+    assert np.all(img == round(IDEAL.background_level))

@@ -1,0 +1,14 @@
+"""Dot-grid detection: the seed paper's RRHT framework (§4.1) and two OpenCV baselines.
+
+No Prefect import. Public API: :func:`detect_grid`, :data:`DETECTORS`, :class:`GridDetection`.
+Modules, one job each: ``preprocess`` (downsampling, median, gamma), ``edges`` (Canny),
+``chaincode`` (Freeman chain-code contour filter), ``rrht`` (random Hough circles),
+``conics`` (batched ellipse fits, RANSAC), ``subpixel`` (full-resolution rim fits),
+``grid`` (lattice ordering), ``perspective`` (homography, centre bias), ``framework`` (the RRHT
+pipeline), ``baselines`` (blob / Hough), ``synthetic`` (quick test images).
+"""
+
+from tasks.detection.api import DETECTORS, detect_grid
+from tasks.detection.result import GridDetection
+
+__all__ = ["DETECTORS", "GridDetection", "detect_grid"]

@@ -1,0 +1,83 @@
+"""Image preprocessing for the coarse search: downsampling, median filter, gamma correction.
+
+All images are 2-D uint8 arrays (rows = v, columns = u, px). The coarse image is the input
+reduced by an integer ``factor`` with area averaging; a coarse pixel (uc, vc) covers full-size
+pixel centres so that ``u = (uc + 0.5) * factor - 0.5`` (see :func:`coarse_to_full`).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def check_image(image: np.ndarray) -> np.ndarray:
+    """Validate a grayscale 8-bit image; raise ValueError with a clear message otherwise."""
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.ndim != 2:
+        raise ValueError(f"image must be 2-D grayscale (H, W), got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise ValueError(f"image must be uint8, got {image.dtype}")
+    if min(image.shape) < 16:
+        raise ValueError(f"image too small: {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """Area-average the image by an integer factor (no-op for 1)."""
+    if factor <= 1:
+        return image
+    h, w = image.shape
+    return cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+
+def coarse_to_full(uv: np.ndarray, factor: int) -> np.ndarray:
+    """Map coarse-image pixel coordinates to full-size ones (px)."""
+    return (np.asarray(uv, dtype=float) + 0.5) * factor - 0.5
+
+
+def gamma_lut(gamma: float, lo: float, hi: float, toe: float = 0.05) -> np.ndarray:
+    """256-entry LUT: stretch [lo, hi] to x in [0, 1], apply a gamma curve, back to 0..255.
+
+    The curve ((x + toe)^γ − toe^γ) / ((1 + toe)^γ − toe^γ) is a gamma with a linear toe: a
+    pure x^γ (γ < 1) has an unbounded slope at 0, which turns one grey level of sensor noise in
+    a dark dot into a jump of dozens of levels and fake edges.
+    """
+    x = np.clip((np.arange(256, dtype=float) - lo) / max(hi - lo, 1.0), 0.0, 1.0)
+    y = ((x + toe) ** gamma - toe**gamma) / ((1 + toe) ** gamma - toe**gamma)
+    return np.round(255.0 * y).astype(np.uint8)
+
+
+def auto_gamma(image: np.ndarray, median_ksize: int = 3, target_mid: float = 0.5) -> tuple[np.ndarray, dict]:
+    """Median filter, then a contrast stretch and gamma that maps the mid-grey level to ``target_mid``.
+
+    The stretch uses the 1st and 99th percentiles; mid is the Otsu threshold between the dark and
+    the light grey levels and γ = log(target_mid) / log(mid) (within [0.5, 2]), so that dark-side
+    and light-side edges get comparable strength under uneven illumination and low contrast.
+    Returns (image uint8, info dict with lo, hi, gamma).
+    """
+    med = cv2.medianBlur(image, median_ksize) if median_ksize > 1 else image
+    hist = cv2.calcHist([med], [0], None, [256], [0, 256]).ravel()
+    cdf = np.cumsum(hist) / max(hist.sum(), 1.0)
+    lo = float(np.searchsorted(cdf, 0.01))
+    hi = float(np.searchsorted(cdf, 0.99))
+    if hi - lo < 1:
+        return med, {"lo": lo, "hi": hi, "gamma": 1.0}
+    mid = _otsu(hist)
+    m = np.clip((mid - lo) / (hi - lo), 0.05, 0.95)
+    gamma = float(np.clip(np.log(target_mid) / np.log(m), 0.5, 2.0))
+    out = cv2.LUT(med, gamma_lut(gamma, lo, hi))
+    return out, {"lo": lo, "hi": hi, "gamma": gamma}
+
+
+def _otsu(hist: np.ndarray) -> float:
+    """Otsu threshold (grey level) of a 256-bin histogram."""
+    p = hist / max(hist.sum(), 1.0)
+    levels = np.arange(256, dtype=float)
+    w0 = np.cumsum(p)
+    mu = np.cumsum(p * levels)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        between = (mu[-1] * w0 - mu) ** 2 / (w0 * (1.0 - w0))
+    between = np.nan_to_num(between, nan=0.0, posinf=0.0)
+    return float(np.argmax(between)) + 0.5

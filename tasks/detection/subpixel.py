@@ -1,0 +1,406 @@
+"""Sub-pixel ellipse fits of dot rims at full resolution, batched over all dots.
+
+Each dot is searched in a circular ROI around its coarse ellipse: grey-level profiles are
+sampled along rays from the dot centre (bilinear interpolation, one ``cv2.remap`` call for all
+dots and rays), and the rim is located on each ray from the grey levels, not from pixel-quantised
+contours:
+
+* pass 1 (robust): the maximum of the polarity-signed derivative along each ray, refined by a
+  parabola; a RANSAC ellipse over these points rejects rays hit by clutter, dust or a neighbour.
+  The width of the derivative peak gives the edge blur σ of each dot.
+* pass 2 (precise): a window of ±(``window_sigmas`` σ + pad) around the pass-1 rim on every ray;
+  an area (first-moment) locator gives a start, then a per-ray least-squares fit of a blurred
+  step I(t) = a + (b − a) Φ((t − t_e)/s) gives the rim t_e and the local blur s. For blurry rims
+  the rays sample a ``level``× area-averaged copy of the image (same information, fewer samples).
+* blur–curvature correction: blurring moves a curved rim inwards by s²/(2ρ) (ρ: radius of
+  curvature); s varies across a dot on a tilted, defocused plate, so the shift is removed per ray.
+
+A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
+the ellipse centre. Units: px of the full-size image unless a name says ``level``; ray angles in
+rad from +u towards +v.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tasks.detection.conics import (
+    ellipse_params,
+    ellipse_radius_along,
+    fit_conic_lsq,
+    is_ellipse,
+    ransac_ellipse,
+    sampson_distance,
+)
+
+INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
+
+
+@dataclass
+class SubpixelParams:
+    pass1_rays: int = 32
+    pass1_samples: int = 28  # samples per pass-1 ray (spread over the search band)
+    ransac_hypotheses: int = 16
+    rays_per_px: float = 0.5  # pass-2 rays per px of rim length (at the sampling level)
+    min_rays: int = 48
+    max_rays: int = 128
+    window_sigmas: float = 2.5  # pass-2 window half-width = window_sigmas × σ + window_pad_px × level
+    window_sigmas_blurry: float = 4.0
+    window_pad_px: float = 1.5
+    max_level: int = 4  # largest area-averaging factor for blurry rims
+    erf_iterations: int = 2
+    n_refine: int = 1  # pass-2 repetitions (each re-centres the rays)
+    blur_curvature_correction: bool = True
+
+
+@dataclass
+class EllipseFits:
+    """Full-resolution ellipse fits of K dots (px)."""
+
+    centres: np.ndarray  # (K, 2) ellipse centres
+    axes: np.ndarray  # (K, 2) semi-axes (major, minor)
+    theta: np.ndarray  # (K,) major-axis angle, rad
+    residual_rms_px: np.ndarray  # (K,) RMS distance of inlier rim points to the ellipse
+    support: np.ndarray  # (K,) fraction of pass-2 rays that gave an inlier rim point
+    edge_sigma_px: np.ndarray  # (K,) median edge blur σ from the step fits
+    ok: np.ndarray  # (K,) bool
+
+
+@dataclass
+class Crop:
+    """``level``× area-averaged copy of the image region that holds every ROI.
+
+    origin: (u0, v0) full-size px of the region's top-left pixel; full: (H, W) of the image.
+    A full-size point u maps to (u − u0 + 0.5) / level − 0.5 in the crop.
+    """
+
+    data: np.ndarray
+    origin: tuple[int, int]
+    full: tuple[int, int]
+    level: int = 1
+
+
+def crop_rois(image: np.ndarray, centres: np.ndarray, reach: float, level: int = 1) -> Crop:
+    """Crop covering every centre ± reach px, area-averaged by ``level`` (uint8, not copied at level 1).
+
+    Rays sample it with bilinear interpolation rounded to whole grey levels: a uniform ±0.5 DN
+    error (σ 0.29 DN) per sample, negligible beside sensor noise, and no float copy of the plate.
+    """
+    h, w = image.shape
+    u0 = int(max(0, np.floor(centres[:, 0].min() - reach - 2)))
+    v0 = int(max(0, np.floor(centres[:, 1].min() - reach - 2)))
+    u1 = int(min(w, np.ceil(centres[:, 0].max() + reach + 3)))
+    v1 = int(min(h, np.ceil(centres[:, 1].max() + reach + 3)))
+    if level > 1:  # whole blocks only, so that the level grid stays aligned with the origin
+        u1 = u0 + max(level, (u1 - u0) // level * level)
+        v1 = v0 + max(level, (v1 - v0) // level * level)
+        sub = image[v0:v1, u0:u1]
+        data = cv2.resize(sub, (sub.shape[1] // level, sub.shape[0] // level),
+                          interpolation=cv2.INTER_AREA)
+    else:
+        data = image[v0:v1, u0:u1]
+    return Crop(data, (u0, v0), (h, w), level)
+
+
+def sample_profiles(crop: Crop, centres: np.ndarray, angles: np.ndarray, t: np.ndarray):
+    """Grey levels along rays: centres (K, 2) px, angles (R,), t (K, R, T) px → (K, R, T) float32.
+
+    Also returns the (K, R, T) mask of samples inside the full image.
+    """
+    k, r, n = t.shape
+    lv = float(crop.level)
+    t = t.astype(np.float32, copy=False)
+    cs = np.cos(angles).astype(np.float32)[None, :, None]
+    sn = np.sin(angles).astype(np.float32)[None, :, None]
+    u0, v0 = crop.origin
+    mx = (centres[:, 0, None, None] - u0).astype(np.float32) + cs * t  # (K, R, T) crop px (full scale)
+    my = (centres[:, 1, None, None] - v0).astype(np.float32) + sn * t
+    h, w = crop.full
+    inside = (mx >= -u0) & (mx <= w - 1 - u0) & (my >= -v0) & (my <= h - 1 - v0)
+    if crop.level > 1:
+        mx = (mx + 0.5) / lv - 0.5
+        my = (my + 0.5) / lv - 0.5
+    mx = mx.reshape(k * r, n)
+    my = my.reshape(k * r, n)
+    out = np.empty((k * r, n), crop.data.dtype)
+    step = 30000  # cv2.remap map height must stay below SHRT_MAX
+    for i in range(0, k * r, step):
+        out[i : i + step] = cv2.remap(crop.data, mx[i : i + step], my[i : i + step], INTERP,
+                                      borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(k, r, n).astype(np.float32), inside
+
+
+def masked_median(values: np.ndarray, mask: np.ndarray, default: float = np.nan) -> np.ndarray:
+    """Median along the last axis of ``values`` where ``mask`` (sort-based; NaN-free, fast)."""
+    v = np.sort(np.where(mask, values, np.inf), axis=-1)
+    n = mask.sum(axis=-1)
+    lo = np.take_along_axis(v, np.maximum((n - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    hi = np.take_along_axis(v, np.maximum(n // 2, 0)[..., None], axis=-1)[..., 0]
+    with np.errstate(invalid="ignore"):
+        return np.where(n > 0, 0.5 * (lo + hi), default)
+
+
+def robust_ellipse_fit(x, y, w, origin, scale, iterations: int = 1):
+    """LSQ ellipses (K sets) with iterative rejection beyond 4 robust σ.
+
+    x, y, w: (K, N) px and validity; origin (K, 2), scale (K,) px for normalisation. Returns
+    (conic (K, 6) in normalised coordinates, inlier mask (K, N), distances (K, N) px).
+    """
+    xn = (x - origin[:, 0:1]) / scale[:, None]
+    yn = (y - origin[:, 1:2]) / scale[:, None]
+    wts = w.astype(float)
+    conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
+    for _ in range(iterations):
+        d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+        mad = masked_median(d, (wts > 0) & np.isfinite(d), default=1.0)
+        thr = np.maximum(4.0 * 1.4826 * mad, 0.05)
+        wts = w * (d < thr[:, None])
+        conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
+    d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+    return conic, wts > 0, d
+
+
+def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: float):
+    """Pass-1 rim per ray: (t_peak (K, R), peak height (K, R), FWHM of the peak (K, R) px).
+
+    The polarity-signed central difference is maximised along each ray and refined by a parabola.
+    """
+    k, r, _ = prof.shape
+    dt = t[..., 2:] - t[..., :-2]
+    d = (prof[..., 2:] - prof[..., :-2]) * sign
+    ok = (dt > 1e-6) & inside[..., 2:] & inside[..., :-2]
+    d = np.where(ok, d / np.maximum(dt, 1e-6), -np.inf)  # derivative at samples 1 … T−2
+    j = np.argmax(d, axis=2)
+    kk, rr = np.meshgrid(np.arange(k), np.arange(r), indexing="ij")
+    jc = np.clip(j, 1, d.shape[2] - 2)
+    d0, dm, dp = d[kk, rr, jc], d[kk, rr, jc - 1], d[kk, rr, jc + 1]
+    peak = d[kk, rr, j]
+    with np.errstate(all="ignore"):
+        den = dm - 2 * d0 + dp
+        off = np.where((den < 0) & np.isfinite(den), 0.5 * (dm - dp) / den, 0.0)
+    off = np.clip(off, -0.5, 0.5)
+    step = t[..., 1] - t[..., 0]  # (K, R)
+    tp = np.where(j == jc, t[kk, rr, jc + 1] + off * step, t[kk, rr, j + 1])
+    fwhm = ((d > 0.5 * peak[..., None]) & np.isfinite(d)).sum(axis=2) * step
+    return tp, peak, fwhm
+
+
+def _phi(z: np.ndarray) -> np.ndarray:
+    """Standard normal CDF, tanh approximation (|error| < 2e-4, odd about 0: no location bias)."""
+    return 0.5 + 0.5 * np.tanh(z * (np.float32(0.7978845608) + np.float32(0.0356774081) * z * z))
+
+
+def solve_spd4(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Solve many 4×4 symmetric positive-definite systems: m (4, 4, N), v (4, N) → (4, N).
+
+    Gaussian elimination written over the batch axis (no pivoting needed for SPD matrices):
+    a few dozen vector operations instead of one LAPACK call per system.
+    """
+    a = m.copy()
+    b = v.copy()
+    for i in range(4):
+        piv = np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
+        for j in range(i + 1, 4):
+            f = a[j, i] / piv
+            a[j, i:] -= f * a[i, i:]
+            b[j] -= f * b[i]
+    x = np.empty_like(b)
+    for i in range(3, -1, -1):
+        acc = b[i].copy()
+        for j in range(i + 1, 4):
+            acc -= a[i, j] * x[j]
+        x[i] = acc / np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
+    return x
+
+
+def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int):
+    """Per-ray least-squares fit of a blurred step I(t) = a + (b − a) Φ((t − t_e) / s).
+
+    prof, t: (K, R, T) grey levels and their distances along each ray; t0, i_in, i_out: (K, R)
+    starting values; sigma0: (K,) starting blur (px). Gauss–Newton on (t_e, a, b, log s), all rays
+    at once (arrays laid out (T, K·R) so that every sum over a profile is a fast leading-axis
+    reduction). Unlike the area locator, which weights every sample of the window equally, this
+    weights samples by how much they tell about the edge position, so the noise of the flat
+    parts of the window hardly enters t_e. Returns (t_e (K, R), s (K, R) px, converged (K, R)).
+    """
+    f32 = np.float32
+    shape = t0.shape
+    n_t = prof.shape[-1]
+    y = np.ascontiguousarray(prof.reshape(-1, n_t).T, dtype=f32)  # (T, N)
+    tt = np.ascontiguousarray(t.reshape(-1, n_t).T, dtype=f32)
+    te = t0.reshape(-1).astype(f32)
+    a = i_in.reshape(-1).astype(f32)
+    b = i_out.reshape(-1).astype(f32)
+    ls = np.broadcast_to(np.log(np.maximum(sigma0, 0.3))[:, None], shape).reshape(-1).astype(f32)
+    for _ in range(iterations):
+        s = np.exp(ls)
+        inv_s = f32(1.0) / s
+        z = (tt - te) * inv_s
+        phi = _phi(z)
+        dens = np.exp(f32(-0.5) * z * z) * f32(0.3989422804014327)
+        c = b - a
+        r = y - (a + c * phi)  # (T, N)
+        cd = c * dens
+        cols = (-cd * inv_s, f32(1.0) - phi, phi, -cd * z)  # Jacobian columns (T, N)
+        jtj = np.empty((4, 4, len(te)))
+        jtr = np.empty((4, len(te)))
+        for i in range(4):
+            jtr[i] = (cols[i] * r).sum(axis=0)
+            for j in range(i, 4):
+                jtj[i, j] = jtj[j, i] = (cols[i] * cols[j]).sum(axis=0)
+        jtj[range(4), range(4)] += 1e-9
+        step = solve_spd4(jtj, jtr)
+        lim = np.maximum(1.0, s)  # at most one blur width (or 1 px) per step
+        step[0] = np.clip(step[0], -lim, lim)
+        step[3] = np.clip(step[3], -0.7, 0.7)
+        step = np.nan_to_num(step).astype(f32)
+        te, a, b, ls = te + step[0], a + step[1], b + step[2], ls + step[3]
+    te = te.astype(float).reshape(shape)
+    s = np.exp(ls.astype(float)).reshape(shape)
+    good = np.isfinite(te) & np.isfinite(s) & (np.abs(te - t0) < 3.0 * np.maximum(sigma0[:, None], 1.0))
+    return np.where(good, te, t0), np.where(good, s, np.nan), good
+
+
+def curvature_correction(s: np.ndarray, ok: np.ndarray, ang: np.ndarray, axes: np.ndarray,
+                         theta: np.ndarray) -> np.ndarray:
+    """Outward shift (K, R) px that moves blurred-rim points back onto the sharp rim.
+
+    Blurring a disk by a Gaussian of σ moves its 50 % contour inwards by σ²/(2ρ), ρ the local
+    radius of curvature. A uniform σ only shrinks the ellipse, but on a tilted, defocused plate σ
+    changes across a dot, and the uneven shift moves the centre. σ² is modelled per dot as
+    c0 + c1 cos θ + c2 sin θ (least squares over the per-ray blur estimates ``s``) and ρ is the
+    ellipse's curvature radius where ray θ meets it.
+    """
+    basis = np.stack([np.ones_like(ang), np.cos(ang), np.sin(ang)], axis=1)  # (R, 3)
+    w = ok.astype(float)
+    s2 = np.where(ok, s, 0.0) ** 2
+    a = np.einsum("kr,ri,rj->kij", w, basis, basis) + 1e-9 * np.eye(3)
+    b = np.einsum("kr,ri,kr->ki", w, basis, s2)
+    coef = np.linalg.solve(a, b[..., None])[..., 0]  # (K, 3)
+    s2_fit = np.clip(coef @ basis.T, 0.0, None)  # (K, R)
+    phi = ang[None, :] - theta[:, None]
+    ea, eb = axes[:, 0:1], axes[:, 1:2]
+    tpar = np.arctan2(ea * np.sin(phi), eb * np.cos(phi))  # parametric angle of the hit point
+    rho_c = (ea**2 * np.sin(tpar) ** 2 + eb**2 * np.cos(tpar) ** 2) ** 1.5 / (ea * eb)
+    return s2_fit / (2.0 * rho_c)
+
+
+def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
+    """Robust rim ellipses and blur σ per dot (see module docstring)."""
+    ang = np.arange(p.pass1_rays) * (2 * np.pi / p.pass1_rays)
+    rho0 = ellipse_radius_along(centres, axes, theta, ang)  # (K, R1)
+    band = np.maximum(np.maximum(4.0, 2.0 * coarse_factor), 0.35 * axes[:, 1])  # (K,) ± px
+    u = np.linspace(-1.0, 1.0, p.pass1_samples)
+    t = rho0[:, :, None] + u[None, None, :] * band[:, None, None]
+    t = np.clip(t, 0.25 * axes[:, 1, None, None], out_lim[:, None, None])
+    prof, inside = sample_profiles(crop, centres, ang, t)
+    tp, peak, fwhm = derivative_peaks(prof, t, inside, sign)
+    good = np.isfinite(peak) & (peak > 0)
+    med_peak = masked_median(peak, good, default=np.inf)
+    valid = good & (peak > 0.3 * med_peak[:, None])
+    sigma = np.clip(masked_median(fwhm / 2.355, valid, default=1.0), 0.5, None)
+    x = centres[:, 0:1] + np.cos(ang)[None, :] * tp
+    y = centres[:, 1:2] + np.sin(ang)[None, :] * tp
+    scale = np.maximum(axes[:, 0], 1.0)
+    xn = (x - centres[:, 0:1]) / scale[:, None]
+    yn = (y - centres[:, 1:2]) / scale[:, None]
+    thr = np.maximum(1.0, 0.03 * axes[:, 0]) / scale
+    inl = ransac_ellipse(xn, yn, valid, thr, p.ransac_hypotheses, rng)
+    conic = fit_conic_lsq(xn, yn, inl.astype(float), sampson_iterations=1)
+    ok = is_ellipse(conic) & (inl.sum(axis=1) >= 10)
+    c1, ax1, th1 = ellipse_params(conic, centres, scale)
+    bad = ~ok | ~np.isfinite(c1).all(axis=1) | ~np.isfinite(ax1).all(axis=1)
+    c1[bad], ax1[bad], th1[bad] = centres[bad], axes[bad], theta[bad]  # pass 2 starts from coarse
+    return c1, ax1, th1, sigma
+
+
+def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p):
+    """Precise rim points along pass-2 rays: (x, y, valid (K, R), s (K, R), ang (R,))."""
+    lv = crop.level
+    a_med = float(np.median(axs[:, 0]))
+    n_rays = int(np.clip(round(p.rays_per_px * 2 * np.pi * a_med / lv), p.min_rays, p.max_rays))
+    ang = np.arange(n_rays) * (2 * np.pi / n_rays)
+    # window: ±(k σ + pad); k grows from window_sigmas (sharp rims, where extra flat samples only
+    # add interpolation artefacts) to window_sigmas_blurry for σ ≥ 2 px (blurry rims, whose
+    # tails are not Gaussian and need the wider view)
+    ksig = p.window_sigmas + (p.window_sigmas_blurry - p.window_sigmas) * np.clip(sigma - 1.0, 0.0, 1.0)
+    half_w = ksig * sigma + p.window_pad_px * lv  # (K,)
+    half_w = np.minimum(half_w, np.maximum(0.6 * axs[:, 1], 2.0 * lv))
+    half_w = np.minimum(half_w, np.maximum(1.6 * gap_ratio * axs[:, 1], 2.0 * lv))
+    n2 = int(np.ceil(2 * half_w.max() / lv)) + 1
+    u2 = np.linspace(-1.0, 1.0, n2)
+    rho = ellipse_radius_along(cen, axs, ths, ang)  # (K, R)
+    t = rho[:, :, None] + u2[None, None, :] * half_w[:, None, None]
+    prof, inside = sample_profiles(crop, cen, ang, t)
+    ne = max(2, n2 // 6)
+    i_in = prof[..., :ne].mean(axis=2)
+    i_out = prof[..., -ne:].mean(axis=2)
+    contrast = (i_out - i_in) * sign  # (K, R)
+    med_c = masked_median(contrast, contrast > 0, default=np.inf)
+    # area (first-moment) start: t_e = t_start + ∫ (1 − normalised profile) dt
+    span = np.where(np.abs(i_out - i_in) > 1e-6, i_out - i_in, 1.0)
+    g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
+    dts = (2 * half_w / (n2 - 1))[:, None]
+    te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
+    te, s, conv = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations)
+    valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
+    valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(s, half_w[:, None] / 2)
+    if p.blur_curvature_correction:
+        te = te + curvature_correction(s, valid, ang, axs, ths)
+    x = cen[:, 0:1] + np.cos(ang)[None, :] * te
+    y = cen[:, 1:2] + np.sin(ang)[None, :] * te
+    return x, y, valid, s, ang
+
+
+def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
+                    dark_dots: bool, gap_ratio: float, coarse_factor: int,
+                    params: SubpixelParams | None = None, seed: int = 0,
+                    timings: dict | None = None) -> EllipseFits:
+    """Refine coarse ellipses (already mapped to full-size px) to sub-pixel ellipse fits.
+
+    gap_ratio: (pitch − diameter) / diameter of the plate, bounding how far outside the rim a ray
+    may look before it reaches the neighbouring dot. coarse_factor: downsampling factor of the
+    coarse search (sets the pass-1 search band). timings: optional dict that receives the seconds
+    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting".
+    """
+    p = params or SubpixelParams()
+    rng = np.random.default_rng(seed)
+    clock = time.perf_counter
+    t_begin = clock()
+    sign = 1.0 if dark_dots else -1.0
+    out_lim = (1.0 + min(0.8 * gap_ratio, 0.6)) * axes[:, 0]
+    reach = float(out_lim.max()) + 4.0 * coarse_factor
+    crop1 = crop_rois(image, centres, reach)
+    t0 = clock()
+    cen, axs, ths, sigma = _pass1(crop1, centres, axes, theta, sign, out_lim, coarse_factor, p, rng)
+    t_fit = clock() - t0
+    level = int(np.clip(np.floor(np.median(sigma) / 2.0), 1, p.max_level))
+    crop2 = crop1 if level == 1 else crop_rois(image, centres, reach, level)
+    k = len(centres)
+    ok = np.zeros(k, bool)
+    rms = np.full(k, np.nan)
+    support = np.zeros(k)
+    s_med = np.full(k, np.nan)
+    for _ in range(p.n_refine):
+        x, y, valid, s, ang = _pass2(crop2, cen, axs, ths, sigma, sign, gap_ratio, p)
+        t0 = clock()
+        scale = np.maximum(axs[:, 0], 1.0)
+        conic, inl, dist = robust_ellipse_fit(x, y, valid, cen, scale)
+        ok = is_ellipse(conic) & (inl.sum(axis=1) >= 12)
+        cn, an, tn = ellipse_params(conic, cen, scale)
+        ok &= np.isfinite(cn).all(axis=1) & np.isfinite(an).all(axis=1)
+        cen = np.where(ok[:, None], cn, cen)
+        axs = np.where(ok[:, None], an, axs)
+        ths = np.where(ok, tn, ths)
+        rms = np.sqrt((np.where(inl, dist, 0.0) ** 2).sum(axis=1) / np.maximum(inl.sum(axis=1), 1))
+        s_med = masked_median(s, valid & np.isfinite(s))
+        support = inl.sum(axis=1) / len(ang)
+        t_fit += clock() - t0
+    if timings is not None:
+        timings["ellipse_fitting"] = timings.get("ellipse_fitting", 0.0) + t_fit
+        timings["rim_sampling"] = timings.get("rim_sampling", 0.0) + clock() - t_begin - t_fit
+    return EllipseFits(cen, axs, ths, rms, support, s_med * 1.0, ok)

@@ -1,0 +1,29 @@
+"""The simulate flow end to end through Prefect's test harness, on a small campaign."""
+
+import pandas as pd
+import pytest
+
+from tasks.campaign_plan import CampaignPlan
+
+pytestmark = pytest.mark.flow
+
+
+def test_simulate_flow_writes_a_complete_campaign_atomically(prefect_harness, tmp_path):
+    from flows.simulate import simulate_campaign
+
+    out = tmp_path / "c1"
+    path = simulate_campaign(str(out), seed=3, size="small", effects=["scale:axis=X,ppm=30"], small_plan=True)
+    assert path == str(out.resolve())
+    manifest = pd.read_csv(out / "manifest.csv")
+    p = CampaignPlan.small()
+    expected = 2 * p.calibration_trials * p.images_per_trial + 5 * p.sweep_positions * p.sweep_repeats \
+        + p.pige_poses + p.validation_poses
+    assert len(manifest) == expected
+    assert all((out / rel).is_file() for rel in manifest.path)
+    assert not any(x.name.endswith(".partial") for x in tmp_path.iterdir())
+    truth = (out / "truth" / "truth.json").read_text()
+    assert "scale:axis=X,ppm=30" in truth
+    assert pd.read_parquet(out / "truth" / "images.parquet").in_view.all()
+
+    with pytest.raises(FileExistsError, match="already exists"):
+        simulate_campaign(str(out), seed=3, size="small", small_plan=True)

@@ -71,13 +71,19 @@ def fit_conic_lsq(
 
 
 def conic_through_five(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Conics through 5 points each: x, y (..., 5) → (..., 6), unit norm (null vector of the design)."""
-    d = _design(x, y)  # (..., 5, 6)
-    # the null vector of a 5×6 matrix is the vector of its signed 5×5 minors (cofactor expansion)
-    cols = [[j for j in range(6) if j != i] for i in range(6)]
-    minors = np.stack([np.linalg.det(d[..., c]) for c in cols], axis=-1)  # (..., 6)
-    minors *= np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
-    return minors / np.maximum(np.linalg.norm(minors, axis=-1, keepdims=True), 1e-300)
+    """Conics through 5 points each: x, y (..., 5) → (..., 6), unit norm.
+
+    Solved with F = −1, i.e. for conics that do not pass through the origin: callers normalise
+    points about the ellipse's own (approximate) centre, which lies inside it. Degenerate
+    samples come back as NaN.
+    """
+    d = np.stack([x * x, x * y, y * y, x, y], axis=-1)  # (..., 5, 5)
+    ok = np.abs(np.linalg.det(d)) > 1e-12
+    d = np.where(ok[..., None, None], d, np.eye(5))
+    p = np.linalg.solve(d, np.ones((*x.shape, 1)))[..., 0]  # (..., 5)
+    conic = np.concatenate([p, -np.ones((*x.shape[:-1], 1))], axis=-1)
+    conic /= np.linalg.norm(conic, axis=-1, keepdims=True)
+    return np.where(ok[..., None], conic, np.nan)
 
 
 def is_ellipse(conic: np.ndarray) -> np.ndarray:

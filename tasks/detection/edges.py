@@ -18,9 +18,8 @@ class EdgeMap:
     """Canny edges and the gradient field of one coarse image (all (H, W) arrays)."""
 
     edges: np.ndarray  # uint8, 255 on edge pixels
-    gx: np.ndarray  # float32, d I / d u
-    gy: np.ndarray  # float32, d I / d v
-    mag: np.ndarray  # float32, |∇I|
+    gx: np.ndarray  # int16, d I / d u (Sobel)
+    gy: np.ndarray  # int16, d I / d v
     low: float  # Canny hysteresis thresholds (gradient magnitude, L2)
     high: float
 
@@ -34,17 +33,14 @@ def canny_edges(image: np.ndarray, high_percentile: float = 99.0, high_fraction:
     """
     dx = cv2.Sobel(image, cv2.CV_16S, 1, 0, ksize=3)
     dy = cv2.Sobel(image, cv2.CV_16S, 0, 1, ksize=3)
-    gx = dx.astype(np.float32)
-    gy = dy.astype(np.float32)
-    mag = cv2.magnitude(gx, gy)
     # percentile and median from a strided subsample: cheap and precise enough for thresholds
-    sub = mag[::2, ::2].ravel()
+    sub = cv2.magnitude(dx[::2, ::2].astype(np.float32), dy[::2, ::2].astype(np.float32)).ravel()
     hi_p = float(np.percentile(sub, high_percentile)) if sub.size else 0.0
     med = float(np.median(sub)) if sub.size else 0.0
     high = max(min_high, 6.0 * med, high_fraction * hi_p)
     low = 0.5 * high
     edges = cv2.Canny(dx, dy, low, high, L2gradient=True)
-    return EdgeMap(edges=edges, gx=gx, gy=gy, mag=mag, low=low, high=high)
+    return EdgeMap(edges=edges, gx=dx, gy=dy, low=low, high=high)
 
 
 N_DIRECTIONS = 64  # gradient direction codes: code k ↔ angle 2πk/64 from +u towards +v
@@ -57,7 +53,7 @@ def direction_codes(em: EdgeMap, edges: np.ndarray) -> np.ndarray:
     point", which is what the Hough sampling and the rim search ask millions of times.
     """
     vs, us = np.nonzero(edges)
-    phase = np.arctan2(em.gy[vs, us], em.gx[vs, us])  # rad in (−π, π]
+    phase = np.arctan2(em.gy[vs, us].astype(float), em.gx[vs, us].astype(float))  # rad in (−π, π]
     code = np.rint(phase * (N_DIRECTIONS / (2 * np.pi))).astype(np.int64) % N_DIRECTIONS
     out = np.full(edges.shape, 255, dtype=np.uint8)
     out[vs, us] = code

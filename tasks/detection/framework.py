@@ -95,9 +95,9 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         return fail("no edges that could be dot rims (blank, saturated or featureless image)")
     circles = rrht_circles(em, edges, plate.dark_dots, d_min / factor / 2, d_max / factor / 2,
                            p.rrht, seed=p.seed, timings=tm)
-    if len(circles) < n:
-        return fail(f"found {len(circles)} circular targets, fewer than the {n} dots of a "
-                    f"{plate.rows}x{plate.cols} plate", n_candidates=len(circles))
+    if len(circles) < 4:
+        return fail(f"found {len(circles)} circular targets, not a {plate.rows}x{plate.cols} dot grid",
+                    n_candidates=len(circles))
     t3 = time.perf_counter()
     order = order_grid(circles.centres, plate, sizes=2 * circles.axes[:, 0], image_shape=small.shape,
                        expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)

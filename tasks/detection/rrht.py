@@ -76,29 +76,40 @@ def sample_diameters(em: EdgeMap, dirs: np.ndarray, dark_dots: bool, r_min: floa
     dirs: direction-code map of the filtered edges (:func:`tasks.detection.edges.direction_codes`).
     """
     vs, us = np.nonzero(dirs != 255)
-    strong = em.mag[vs, us] >= grad_threshold
-    vs, us = vs[strong], us[strong]
+    g1 = np.stack([em.gx[vs, us], em.gy[vs, us]], axis=1).astype(float)
+    mag = np.linalg.norm(g1, axis=1)
+    strong = mag >= grad_threshold
+    vs, us, g1, mag = vs[strong], us[strong], g1[strong], mag[strong]
     n_seeds = len(vs)
     if n_seeds == 0:
         return np.zeros((0, 2)), np.zeros(0), 0
     if n_seeds > params.n_samples:
         pick = np.sort(rng.choice(n_seeds, size=params.n_samples, replace=False))
-        vs, us = vs[pick], us[pick]
-    g1 = np.stack([em.gx[vs, us], em.gy[vs, us]], axis=1)
-    g1 /= np.maximum(np.linalg.norm(g1, axis=1, keepdims=True), 1e-6)
+        vs, us, g1, mag = vs[pick], us[pick], g1[pick], mag[pick]
+    g1 /= np.maximum(mag, 1e-6)[:, None]
     inward = -g1 if dark_dots else g1
-    t = np.arange(max(2.0, 2 * r_min - 1), 2 * r_max + 2, 1.0)  # (T,) candidate diameters
-    pad = int(t[-1]) + 2
+    t_all = np.arange(max(2.0, 2 * r_min - 1), 2 * r_max + 2, 1.0)  # (T,) candidate diameters
+    pad = int(t_all[-1]) + 2
     flat, wp = _padded(dirs, pad)
-    pu = np.rint(us[:, None] + inward[:, 0:1] * t[None, :]).astype(np.int32) + pad  # (S, T)
-    pv = np.rint(vs[:, None] + inward[:, 1:2] * t[None, :]).astype(np.int32) + pad
-    code = flat[pv * wp + pu]
     opposite = (dirs[vs, us].astype(np.int16) + N_DIRECTIONS // 2) % N_DIRECTIONS
     tol = int(np.degrees(np.arccos(params.antiparallel_cos)) / (360.0 / N_DIRECTIONS))
-    hit = (code != 255) & (direction_difference(code, opposite[:, None]) <= tol)
-    has = hit.any(axis=1)
-    first = np.argmax(hit, axis=1)
-    d = t[first][has]
+    # walk in chunks of diameters; rays that found their opposite rim stop walking
+    d = np.full(len(vs), np.nan)
+    live = np.arange(len(vs))
+    chunk = 12
+    for c0 in range(0, len(t_all), chunk):
+        t = t_all[c0 : c0 + chunk]
+        pu = np.rint(us[live, None] + inward[live, 0:1] * t[None, :]).astype(np.int32) + pad  # (S, T)
+        pv = np.rint(vs[live, None] + inward[live, 1:2] * t[None, :]).astype(np.int32) + pad
+        code = flat[pv * wp + pu]
+        hit = (code != 255) & (direction_difference(code, opposite[live, None]) <= tol)
+        got = hit.any(axis=1)
+        d[live[got]] = t[np.argmax(hit[got], axis=1)]
+        live = live[~got]
+        if len(live) == 0:
+            break
+    has = np.isfinite(d)
+    d = d[has]
     p1 = np.stack([us[has], vs[has]], axis=1).astype(float)
     centres = p1 + inward[has] * (d[:, None] / 2.0)
     return centres, d / 2.0, n_seeds

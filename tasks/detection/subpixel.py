@@ -51,9 +51,12 @@ class SubpixelParams:
     window_sigmas: float = 2.5  # pass-2 window half-width = window_sigmas × σ + window_pad_px × level
     window_sigmas_blurry: float = 4.0
     window_pad_px: float = 1.5
-    max_level: int = 4  # largest area-averaging factor for blurry rims
+    max_level: int = 4  # largest area-averaging factor for blurry rims …
+    sigma_per_level: float = 1.25  # … level = ⌊median σ / sigma_per_level⌋
     erf_iterations: int = 2
-    n_refine: int = 1  # pass-2 repetitions (each re-centres the rays)
+    shared_blur_iterations: int = 1  # then (t_e, a, b) refits with σ from the per-dot blur model
+    max_refine: int = 3  # pass-2 repetitions at most (each re-centres the rays) …
+    refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this
     blur_curvature_correction: bool = True
 
 
@@ -164,10 +167,11 @@ def robust_ellipse_fit(x, y, w, origin, scale, iterations: int = 1):
     return conic, wts > 0, d
 
 
-def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: float):
+def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: float, step: np.ndarray):
     """Pass-1 rim per ray: (t_peak (K, R), peak height (K, R), FWHM of the peak (K, R) px).
 
     The polarity-signed central difference is maximised along each ray and refined by a parabola.
+    step: (K,) sample spacing px (samples where ``t`` was clipped repeat and are ignored).
     """
     k, r, _ = prof.shape
     dt = t[..., 2:] - t[..., :-2]
@@ -183,7 +187,7 @@ def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: 
         den = dm - 2 * d0 + dp
         off = np.where((den < 0) & np.isfinite(den), 0.5 * (dm - dp) / den, 0.0)
     off = np.clip(off, -0.5, 0.5)
-    step = t[..., 1] - t[..., 0]  # (K, R)
+    step = np.broadcast_to(step[:, None], (k, r))
     tp = np.where(j == jc, t[kk, rr, jc + 1] + off * step, t[kk, rr, j + 1])
     fwhm = ((d > 0.5 * peak[..., None]) & np.isfinite(d)).sum(axis=2) * step
     return tp, peak, fwhm
@@ -194,38 +198,40 @@ def _phi(z: np.ndarray) -> np.ndarray:
     return 0.5 + 0.5 * np.tanh(z * (np.float32(0.7978845608) + np.float32(0.0356774081) * z * z))
 
 
-def solve_spd4(m: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Solve many 4×4 symmetric positive-definite systems: m (4, 4, N), v (4, N) → (4, N).
+def solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Solve many small symmetric positive-definite systems: m (n, n, N), v (n, N) → (n, N).
 
     Gaussian elimination written over the batch axis (no pivoting needed for SPD matrices):
     a few dozen vector operations instead of one LAPACK call per system.
     """
+    n = m.shape[0]
     a = m.copy()
     b = v.copy()
-    for i in range(4):
+    for i in range(n):
         piv = np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
-        for j in range(i + 1, 4):
+        for j in range(i + 1, n):
             f = a[j, i] / piv
             a[j, i:] -= f * a[i, i:]
             b[j] -= f * b[i]
     x = np.empty_like(b)
-    for i in range(3, -1, -1):
+    for i in range(n - 1, -1, -1):
         acc = b[i].copy()
-        for j in range(i + 1, 4):
+        for j in range(i + 1, n):
             acc -= a[i, j] * x[j]
         x[i] = acc / np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
     return x
 
 
-def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int):
+def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None):
     """Per-ray least-squares fit of a blurred step I(t) = a + (b − a) Φ((t − t_e) / s).
 
     prof, t: (K, R, T) grey levels and their distances along each ray; t0, i_in, i_out: (K, R)
-    starting values; sigma0: (K,) starting blur (px). Gauss–Newton on (t_e, a, b, log s), all rays
-    at once (arrays laid out (T, K·R) so that every sum over a profile is a fast leading-axis
-    reduction). Unlike the area locator, which weights every sample of the window equally, this
-    weights samples by how much they tell about the edge position, so the noise of the flat
-    parts of the window hardly enters t_e. Returns (t_e (K, R), s (K, R) px, converged (K, R)).
+    starting values; sigma0: (K,) starting blur (px). Gauss–Newton on (t_e, a, b, log s), or on
+    (t_e, a, b) with s = ``fixed_sigma`` (K, R), all rays at once (arrays laid out (T, K·R) so
+    that every sum over a profile is a fast leading-axis reduction). Unlike the area locator,
+    which weights every sample of the window equally, this weights samples by how much they tell
+    about the edge position, so the noise of the flat parts of the window hardly enters t_e.
+    Returns (t_e (K, R), s (K, R) px, converged (K, R)).
     """
     f32 = np.float32
     shape = t0.shape
@@ -235,7 +241,11 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int):
     te = t0.reshape(-1).astype(f32)
     a = i_in.reshape(-1).astype(f32)
     b = i_out.reshape(-1).astype(f32)
-    ls = np.broadcast_to(np.log(np.maximum(sigma0, 0.3))[:, None], shape).reshape(-1).astype(f32)
+    if fixed_sigma is None:
+        ls = np.broadcast_to(np.log(np.maximum(sigma0, 0.3))[:, None], shape).reshape(-1).astype(f32)
+    else:
+        ls = np.log(np.maximum(fixed_sigma, 0.3)).reshape(-1).astype(f32)
+    npar = 4 if fixed_sigma is None else 3
     for _ in range(iterations):
         s = np.exp(ls)
         inv_s = f32(1.0) / s
@@ -245,35 +255,32 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int):
         c = b - a
         r = y - (a + c * phi)  # (T, N)
         cd = c * dens
-        cols = (-cd * inv_s, f32(1.0) - phi, phi, -cd * z)  # Jacobian columns (T, N)
-        jtj = np.empty((4, 4, len(te)))
-        jtr = np.empty((4, len(te)))
-        for i in range(4):
+        cols = (-cd * inv_s, f32(1.0) - phi, phi, -cd * z)[:npar]  # Jacobian columns (T, N)
+        jtj = np.empty((npar, npar, len(te)))
+        jtr = np.empty((npar, len(te)))
+        for i in range(npar):
             jtr[i] = (cols[i] * r).sum(axis=0)
-            for j in range(i, 4):
+            for j in range(i, npar):
                 jtj[i, j] = jtj[j, i] = (cols[i] * cols[j]).sum(axis=0)
-        jtj[range(4), range(4)] += 1e-9
-        step = solve_spd4(jtj, jtr)
+        jtj[range(npar), range(npar)] += 1e-9
+        step = solve_spd(jtj, jtr)
         lim = np.maximum(1.0, s)  # at most one blur width (or 1 px) per step
         step[0] = np.clip(step[0], -lim, lim)
-        step[3] = np.clip(step[3], -0.7, 0.7)
         step = np.nan_to_num(step).astype(f32)
-        te, a, b, ls = te + step[0], a + step[1], b + step[2], ls + step[3]
+        te, a, b = te + step[0], a + step[1], b + step[2]
+        if npar == 4:
+            ls = ls + np.clip(step[3], -0.7, 0.7)
     te = te.astype(float).reshape(shape)
     s = np.exp(ls.astype(float)).reshape(shape)
     good = np.isfinite(te) & np.isfinite(s) & (np.abs(te - t0) < 3.0 * np.maximum(sigma0[:, None], 1.0))
     return np.where(good, te, t0), np.where(good, s, np.nan), good
 
 
-def curvature_correction(s: np.ndarray, ok: np.ndarray, ang: np.ndarray, axes: np.ndarray,
-                         theta: np.ndarray) -> np.ndarray:
-    """Outward shift (K, R) px that moves blurred-rim points back onto the sharp rim.
+def blur_model(s: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
+    """Smooth per-dot blur: σ²(θ) = c0 + c1 cos θ + c2 sin θ fitted to per-ray σ (K, R) → σ² (K, R).
 
-    Blurring a disk by a Gaussian of σ moves its 50 % contour inwards by σ²/(2ρ), ρ the local
-    radius of curvature. A uniform σ only shrinks the ellipse, but on a tilted, defocused plate σ
-    changes across a dot, and the uneven shift moves the centre. σ² is modelled per dot as
-    c0 + c1 cos θ + c2 sin θ (least squares over the per-ray blur estimates ``s``) and ρ is the
-    ellipse's curvature radius where ray θ meets it.
+    A plate tilted out of focus has a blur that changes linearly across each dot; single rays
+    measure σ noisily, the three-term model averages them.
     """
     basis = np.stack([np.ones_like(ang), np.cos(ang), np.sin(ang)], axis=1)  # (R, 3)
     w = ok.astype(float)
@@ -281,12 +288,22 @@ def curvature_correction(s: np.ndarray, ok: np.ndarray, ang: np.ndarray, axes: n
     a = np.einsum("kr,ri,rj->kij", w, basis, basis) + 1e-9 * np.eye(3)
     b = np.einsum("kr,ri,kr->ki", w, basis, s2)
     coef = np.linalg.solve(a, b[..., None])[..., 0]  # (K, 3)
-    s2_fit = np.clip(coef @ basis.T, 0.0, None)  # (K, R)
+    return np.clip(coef @ basis.T, 0.01, None)
+
+
+def curvature_correction(s2: np.ndarray, ang: np.ndarray, axes: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Outward shift (K, R) px that moves blurred-rim points back onto the sharp rim.
+
+    Blurring a disk by a Gaussian of σ moves its 50 % contour inwards by σ²/(2ρ), ρ the local
+    radius of curvature. A uniform σ only shrinks the ellipse, but on a tilted, defocused plate σ
+    changes across a dot, and the uneven shift moves the centre. s2: (K, R) σ² per ray (from
+    :func:`blur_model`); ρ is the ellipse's curvature radius where ray θ meets it.
+    """
     phi = ang[None, :] - theta[:, None]
     ea, eb = axes[:, 0:1], axes[:, 1:2]
     tpar = np.arctan2(ea * np.sin(phi), eb * np.cos(phi))  # parametric angle of the hit point
     rho_c = (ea**2 * np.sin(tpar) ** 2 + eb**2 * np.cos(tpar) ** 2) ** 1.5 / (ea * eb)
-    return s2_fit / (2.0 * rho_c)
+    return s2 / (2.0 * rho_c)
 
 
 def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
@@ -298,7 +315,7 @@ def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
     t = rho0[:, :, None] + u[None, None, :] * band[:, None, None]
     t = np.clip(t, 0.25 * axes[:, 1, None, None], out_lim[:, None, None])
     prof, inside = sample_profiles(crop, centres, ang, t)
-    tp, peak, fwhm = derivative_peaks(prof, t, inside, sign)
+    tp, peak, fwhm = derivative_peaks(prof, t, inside, sign, 2.0 * band / (p.pass1_samples - 1))
     good = np.isfinite(peak) & (peak > 0)
     med_peak = masked_median(peak, good, default=np.inf)
     valid = good & (peak > 0.3 * med_peak[:, None])
@@ -329,7 +346,7 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p):
     # tails are not Gaussian and need the wider view)
     ksig = p.window_sigmas + (p.window_sigmas_blurry - p.window_sigmas) * np.clip(sigma - 1.0, 0.0, 1.0)
     half_w = ksig * sigma + p.window_pad_px * lv  # (K,)
-    half_w = np.minimum(half_w, np.maximum(0.6 * axs[:, 1], 2.0 * lv))
+    half_w = np.minimum(half_w, np.maximum(1.0 * axs[:, 1], 2.0 * lv))
     half_w = np.minimum(half_w, np.maximum(1.6 * gap_ratio * axs[:, 1], 2.0 * lv))
     n2 = int(np.ceil(2 * half_w.max() / lv)) + 1
     u2 = np.linspace(-1.0, 1.0, n2)
@@ -347,10 +364,16 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p):
     dts = (2 * half_w / (n2 - 1))[:, None]
     te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
     te, s, conv = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations)
+    usable = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
+    s2 = blur_model(s, usable, ang)
+    if p.shared_blur_iterations:
+        # refit with σ from the smooth per-dot model: t_e no longer trades off against a noisy s
+        te, _, conv = step_fit(prof, t, te, i_in, i_out, sigma, p.shared_blur_iterations,
+                               fixed_sigma=np.sqrt(s2))
     valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
-    valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(s, half_w[:, None] / 2)
+    valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(np.sqrt(s2), half_w[:, None] / 2)
     if p.blur_curvature_correction:
-        te = te + curvature_correction(s, valid, ang, axs, ths)
+        te = te + curvature_correction(s2, ang, axs, ths)
     x = cen[:, 0:1] + np.cos(ang)[None, :] * te
     y = cen[:, 1:2] + np.sin(ang)[None, :] * te
     return x, y, valid, s, ang
@@ -378,28 +401,40 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     t0 = clock()
     cen, axs, ths, sigma = _pass1(crop1, centres, axes, theta, sign, out_lim, coarse_factor, p, rng)
     t_fit = clock() - t0
-    level = int(np.clip(np.floor(np.median(sigma) / 2.0), 1, p.max_level))
+    level = int(np.clip(np.floor(np.median(sigma) / p.sigma_per_level), 1, p.max_level))
     crop2 = crop1 if level == 1 else crop_rois(image, centres, reach, level)
     k = len(centres)
+    cen, axs, ths = cen.copy(), axs.copy(), ths.copy()
     ok = np.zeros(k, bool)
     rms = np.full(k, np.nan)
     support = np.zeros(k)
     s_med = np.full(k, np.nan)
-    for _ in range(p.n_refine):
-        x, y, valid, s, ang = _pass2(crop2, cen, axs, ths, sigma, sign, gap_ratio, p)
+    todo = np.arange(k)
+    n_passes = 0
+    for _ in range(p.max_refine):
+        n_passes += 1
+        c0, a0, h0 = cen[todo], axs[todo], ths[todo]
+        x, y, valid, s, ang = _pass2(crop2, c0, a0, h0, sigma[todo], sign, gap_ratio, p)
         t0 = clock()
-        scale = np.maximum(axs[:, 0], 1.0)
-        conic, inl, dist = robust_ellipse_fit(x, y, valid, cen, scale)
-        ok = is_ellipse(conic) & (inl.sum(axis=1) >= 12)
-        cn, an, tn = ellipse_params(conic, cen, scale)
-        ok &= np.isfinite(cn).all(axis=1) & np.isfinite(an).all(axis=1)
-        cen = np.where(ok[:, None], cn, cen)
-        axs = np.where(ok[:, None], an, axs)
-        ths = np.where(ok, tn, ths)
-        rms = np.sqrt((np.where(inl, dist, 0.0) ** 2).sum(axis=1) / np.maximum(inl.sum(axis=1), 1))
-        s_med = masked_median(s, valid & np.isfinite(s))
-        support = inl.sum(axis=1) / len(ang)
+        scale = np.maximum(a0[:, 0], 1.0)
+        conic, inl, dist = robust_ellipse_fit(x, y, valid, c0, scale)
+        okp = is_ellipse(conic) & (inl.sum(axis=1) >= 12)
+        cn, an, tn = ellipse_params(conic, c0, scale)
+        okp &= np.isfinite(cn).all(axis=1) & np.isfinite(an).all(axis=1)
+        shift = np.linalg.norm(np.where(okp[:, None], cn - c0, 0.0), axis=1)
+        upd = todo[okp]
+        cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
+        ok[todo] = okp
+        rms[todo] = np.sqrt((np.where(inl, dist, 0.0) ** 2).sum(axis=1) / np.maximum(inl.sum(axis=1), 1))
+        s_med[todo] = masked_median(s, valid & np.isfinite(s))
+        support[todo] = inl.sum(axis=1) / len(ang)
         t_fit += clock() - t0
+        # rays cast from an off-centre point cross a strongly blurred, curved rim obliquely, with
+        # an error of order shift·(σ/b)²: dots where that can still matter get another pass
+        oblique = shift * (sigma[todo] / np.maximum(an[:, 1], 1.0)) ** 2
+        todo = todo[okp & (oblique > p.refine_bias_px)]
+        if len(todo) == 0:
+            break
     if timings is not None:
         timings["ellipse_fitting"] = timings.get("ellipse_fitting", 0.0) + t_fit
         timings["rim_sampling"] = timings.get("rim_sampling", 0.0) + clock() - t_begin - t_fit

@@ -1,0 +1,102 @@
+"""Shared fixtures.
+
+- ``tiny_campaign``: a 17-image simulated campaign (small image size, 768×512 px), written once
+  per session by the science functions directly (no Prefect run), so tests never depend on /tmp.
+- ``campaign_copy``: a factory copying it into the test's tmp_path under a new campaign_id, for
+  tests that damage it.
+- ``prefect_harness``: ONE Prefect test harness (temporary server and database) per session,
+  with its own result storage (PREFECT_LOCAL_STORAGE_PATH) in a tmp folder. Flow tests use it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+TINY_CAMPAIGN_ID = "tiny"
+TINY_SEED = 0
+
+
+def write_tiny_campaign(folder: Path, campaign_id: str = TINY_CAMPAIGN_ID, seed: int = TINY_SEED) -> Path:
+    """Simulate a tiny campaign into ``folder`` (17 images: 2 calibration views per camera, 2
+    positions of each axis sweep, 2 PIGE and 1 validation pose), as ``fivecal simulate`` would
+    write it at ``--size small``, truth included. Science functions only; about half a second."""
+    from tasks.campaign_io import TRUTH_DIR, atomic_write_bytes, atomic_write_parquet, write_manifest, write_metadata
+    from tasks.campaign_plan import CampaignPlan, plan_campaign
+    from tasks.machine import load_machine
+    from tasks.prototype_errors import load_prototype_errors
+    from tasks.simulate import encode_png, manifest_from_plan, render_image, simulate_truth, truth_tables
+    from tasks.simulation_steps import campaign_metadata
+
+    size = "small"
+    machine = load_machine("prototype")
+    errors = load_prototype_errors()
+    plan = CampaignPlan(calibration_trials=1, images_per_trial=2, sweep_positions=2, sweep_repeats=1,
+                        pige_poses=2, validation_poses=1)
+    poses, fixture = plan_campaign(machine, plan, seed)
+    truth = simulate_truth(machine, errors, poses, fixture, size)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_metadata(folder, campaign_metadata(machine, campaign_id, size))
+    write_manifest(folder, manifest_from_plan(poses))
+    images, dots = truth_tables(poses, truth, machine)
+    provenance = {"seed": seed, "size": size}
+    atomic_write_parquet(folder / TRUTH_DIR / "images.parquet", images, provenance)
+    atomic_write_parquet(folder / TRUTH_DIR / "dots.parquet", dots, provenance)
+    for i in range(len(poses)):
+        camera, image_id = poses["camera"].iloc[i], poses["image_id"].iloc[i]
+        png = encode_png(render_image(machine, truth, camera, i, seed))
+        atomic_write_bytes(folder / "images" / camera / f"{image_id}.png", png)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def tiny_campaign(tmp_path_factory) -> Path:
+    """A pristine tiny campaign (do not modify: use ``campaign_copy``)."""
+    return write_tiny_campaign(tmp_path_factory.mktemp("campaigns") / TINY_CAMPAIGN_ID)
+
+
+@pytest.fixture
+def campaign_copy(tiny_campaign, tmp_path) -> Callable[..., Path]:
+    """``campaign_copy(campaign_id="tiny")``: a fresh copy of the tiny campaign in tmp_path,
+    with ``campaign_id`` set in its campaign.json."""
+
+    def make(campaign_id: str = TINY_CAMPAIGN_ID) -> Path:
+        dest = tmp_path / "campaigns" / campaign_id
+        shutil.copytree(tiny_campaign, dest)
+        meta_path = dest / "campaign.json"
+        meta = json.loads(meta_path.read_text())
+        meta["campaign_id"] = campaign_id
+        meta_path.write_text(json.dumps(meta, indent=1))
+        return dest
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def prefect_harness(tmp_path_factory) -> Iterator[Path]:
+    """Run flows against a temporary Prefect server; yields the session's result storage folder.
+
+    The storage path is set in the environment (seen by any subprocess) and, because Prefect
+    reads its settings when it is imported, also as a temporary setting of this process. The
+    temporary server sends no telemetry.
+    """
+    from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, PREFECT_SERVER_ANALYTICS_ENABLED, temporary_settings
+    from prefect.testing.utilities import prefect_test_harness
+
+    storage = tmp_path_factory.mktemp("prefect-storage")
+    previous = os.environ.get("PREFECT_LOCAL_STORAGE_PATH")
+    os.environ["PREFECT_LOCAL_STORAGE_PATH"] = str(storage)
+    try:
+        settings = {PREFECT_LOCAL_STORAGE_PATH: storage, PREFECT_SERVER_ANALYTICS_ENABLED: False}
+        with temporary_settings(updates=settings), prefect_test_harness():
+            yield storage
+    finally:
+        if previous is None:
+            os.environ.pop("PREFECT_LOCAL_STORAGE_PATH", None)
+        else:
+            os.environ["PREFECT_LOCAL_STORAGE_PATH"] = previous

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -11,6 +12,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
 
 DEMO_CAMPAIGN = Path("data/campaigns/demo")
+# The temporary Prefect server would try to send telemetry; these machines have no network for it.
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 
 
 @app.command()
@@ -39,6 +42,29 @@ def simulate(
     path = simulate_campaign(str(out), seed=seed, size=size, effects=list(effect or []),
                              small_plan=plan == "small", overwrite=overwrite)
     typer.echo(f"campaign written to {path}")
+
+
+@app.command()
+def ingest(
+    campaign: Annotated[Path, typer.Argument(help="campaign folder")],
+    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
+    = None,
+) -> None:
+    """Validate a campaign and write its images table (cached by image content)."""
+    from tasks.ingest import CampaignError, format_summary, load_campaign_metadata, load_manifest
+
+    try:
+        # campaign-level faults stop here, before any server starts or anything is written
+        load_campaign_metadata(campaign)
+        load_manifest(campaign)
+        from flows.ingest import run_ingest
+
+        summary = run_ingest(campaign, results)
+    except CampaignError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(format_summary(summary))
+    typer.echo(f"images table: {summary['table']}")
 
 
 @app.command()
@@ -91,6 +117,7 @@ def demo(
         simulate(DEMO_CAMPAIGN, seed=0, size="small", effect=[], plan="default", overwrite=True)
     else:
         typer.echo(f"using existing demo campaign {DEMO_CAMPAIGN}")
+    ingest(DEMO_CAMPAIGN, None)
     truth_stats(effect=[], poses=100, seed=0)
 
 

@@ -30,3 +30,9 @@ def test_simulate_refuses_a_bad_effect_before_doing_anything(tmp_path):
     assert result.exit_code != 0
     assert "must be one of" in result.output
     assert not (tmp_path / "x").exists()
+
+
+def test_ingest_of_a_missing_campaign_fails_fast_with_the_folder_named(tmp_path):
+    result = runner.invoke(app, ["ingest", str(tmp_path / "nope")])
+    assert result.exit_code == 2
+    assert "nope" in result.output and "does not exist" in result.output

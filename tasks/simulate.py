@@ -8,19 +8,33 @@ one row of that truth into the 8-bit image the camera would record. No Prefect h
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import json
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pandas as pd
 
+import fivecal
 from tasks.camera_model import CameraModel
-from tasks.campaign_io import COMMAND_COLUMNS, image_relpath
+from tasks.campaign_io import (
+    COMMAND_COLUMNS,
+    TRUTH_DIR,
+    atomic_write_bytes,
+    atomic_write_parquet,
+    atomic_write_text,
+    image_relpath,
+    write_manifest,
+    write_metadata,
+)
+from tasks.campaign_plan import CampaignPlan, plan_campaign
 from tasks.context import PoseContext, approach_directions
-from tasks.effects import camera_changes
+from tasks.effects import camera_changes, parse_effect
 from tasks.error_model import ErrorModel
 from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER, Machine
+from tasks.machine import AXIS_ORDER, Machine, load_machine
+from tasks.prototype_errors import load_prototype_errors
 from tasks.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
 
 SIZES = {"full": 1, "small": 4}  # sensor binning factor per image size
@@ -148,3 +162,63 @@ def truth_tables(plan: pd.DataFrame, truth: CampaignTruth, machine: Machine) -> 
         dots.append(pd.DataFrame({"image_id": plan["image_id"].iloc[i], "row": rc[:, 0], "col": rc[:, 1],
                                   "u_px": truth.centres_px[i][:, 0], "v_px": truth.centres_px[i][:, 1]}))
     return images, pd.concat(dots, ignore_index=True)
+
+
+def campaign_metadata(machine: Machine, campaign_id: str, size: str) -> dict:
+    """campaign.json content: geometry and *nominal* camera data only (no true intrinsics)."""
+    src = machine.source
+    cams = {}
+    for name, cam in machine.cameras.items():
+        c = cam.scaled(SIZES[size])
+        cams[name] = {"width_px": c.width_px, "height_px": c.height_px, "pixel_size_mm": c.pixel_size_mm,
+                      "focal_length_mm": src["cameras"][name]["focal_length_mm"],
+                      "focus_distance_mm": c.focus_distance_mm}
+    machine_geometry = {k: src[k] for k in ("name", "axes", "tool_chain", "workpiece_chain", "attachments",
+                                             "tip", "workpiece", "views", "plates", "notes")}
+    return {"format_version": 1, "campaign_id": campaign_id, "simulated": True,
+            "fivecal_version": fivecal.__version__, "machine": machine_geometry,
+            "cameras": cams, "plates": src["plates"], "views": src["views"]}
+
+
+def write_campaign_truth(folder: Path, campaign_id: str, seed: int, size: str, effects: list[str],
+                         plan: CampaignPlan) -> tuple[Machine, pd.DataFrame, CampaignTruth]:
+    """Plan the campaign, run the true prototype, and write metadata, manifest and truth/.
+
+    Returns what :func:`write_images` needs. Images are not written here.
+    """
+    machine = load_machine("prototype")
+    errors = load_prototype_errors()
+    errors.effects = [parse_effect(s) for s in effects]
+    poses, fixture = plan_campaign(machine, plan, seed)
+    truth = simulate_truth(machine, errors, poses, fixture, size)
+    folder = Path(folder)
+    write_metadata(folder, campaign_metadata(machine, campaign_id, size))
+    write_manifest(folder, manifest_from_plan(poses))
+    images, dots = truth_tables(poses, truth, machine)
+    provenance = {"fivecal_version": fivecal.__version__, "seed": seed, "size": size}
+    atomic_write_parquet(folder / TRUTH_DIR / "images.parquet", images, provenance)
+    atomic_write_parquet(folder / TRUTH_DIR / "dots.parquet", dots, provenance)
+    truth_doc = {"seed": seed, "size": size, "plan": asdict(plan), "effects": list(effects),
+                 "error_model": errors.to_dict(),
+                 "cameras": {n: c.to_dict() for n, c in truth.cameras.items()},
+                 "note": "Ground truth of a simulated campaign. No analysis stage reads this folder."}
+    atomic_write_text(folder / TRUTH_DIR / "truth.json", json.dumps(truth_doc, indent=1))
+    return machine, poses, truth
+
+
+def write_images(folder: Path, machine: Machine, poses: pd.DataFrame, truth: CampaignTruth, rows, seed: int) -> int:
+    """Render and write the images of manifest ``rows``; returns how many were written."""
+    for i in rows:
+        camera, image_id = poses["camera"].iloc[i], poses["image_id"].iloc[i]
+        png = encode_png(render_image(machine, truth, camera, int(i), seed))
+        atomic_write_bytes(Path(folder) / "images" / camera / f"{image_id}.png", png)
+    return len(rows)
+
+
+def write_campaign(folder: Path, campaign_id: str, seed: int = 0, size: str = "small",
+                   effects: list[str] | None = None, plan: CampaignPlan | None = None) -> Path:
+    """A whole simulated campaign written sequentially, without Prefect (tests, notebooks)."""
+    machine, poses, truth = write_campaign_truth(folder, campaign_id, seed, size, list(effects or []),
+                                                 plan or CampaignPlan())
+    write_images(folder, machine, poses, truth, range(len(poses)), seed)
+    return Path(folder)

@@ -26,32 +26,12 @@ def write_tiny_campaign(folder: Path, campaign_id: str = TINY_CAMPAIGN_ID, seed:
     """Simulate a tiny campaign into ``folder`` (17 images: 2 calibration views per camera, 2
     positions of each axis sweep, 2 PIGE and 1 validation pose), as ``fivecal simulate`` would
     write it at ``--size small``, truth included. Science functions only; about half a second."""
-    from tasks.campaign_io import TRUTH_DIR, atomic_write_bytes, atomic_write_parquet, write_manifest, write_metadata
-    from tasks.campaign_plan import CampaignPlan, plan_campaign
-    from tasks.machine import load_machine
-    from tasks.prototype_errors import load_prototype_errors
-    from tasks.simulate import encode_png, manifest_from_plan, render_image, simulate_truth, truth_tables
-    from tasks.simulation_steps import campaign_metadata
+    from tasks.campaign_plan import CampaignPlan
+    from tasks.simulate import write_campaign
 
-    size = "small"
-    machine = load_machine("prototype")
-    errors = load_prototype_errors()
     plan = CampaignPlan(calibration_trials=1, images_per_trial=2, sweep_positions=2, sweep_repeats=1,
                         pige_poses=2, validation_poses=1)
-    poses, fixture = plan_campaign(machine, plan, seed)
-    truth = simulate_truth(machine, errors, poses, fixture, size)
-    folder.mkdir(parents=True, exist_ok=True)
-    write_metadata(folder, campaign_metadata(machine, campaign_id, size))
-    write_manifest(folder, manifest_from_plan(poses))
-    images, dots = truth_tables(poses, truth, machine)
-    provenance = {"seed": seed, "size": size}
-    atomic_write_parquet(folder / TRUTH_DIR / "images.parquet", images, provenance)
-    atomic_write_parquet(folder / TRUTH_DIR / "dots.parquet", dots, provenance)
-    for i in range(len(poses)):
-        camera, image_id = poses["camera"].iloc[i], poses["image_id"].iloc[i]
-        png = encode_png(render_image(machine, truth, camera, i, seed))
-        atomic_write_bytes(folder / "images" / camera / f"{image_id}.png", png)
-    return folder
+    return write_campaign(folder, campaign_id, seed=seed, size="small", plan=plan)
 
 
 @pytest.fixture(scope="session")

@@ -1,0 +1,253 @@
+"""Tests of camera self-calibration (tasks/camera_calibration.py) against the simulator's truth.
+
+Pose level (no images): the default campaign plan's fixture views (10 trials × 15 per camera),
+the true intrinsics of ``load_machine("prototype")``, true projected dot centres and seeded
+Gaussian pixel noise σ = 0.03 px per coordinate. One end-to-end check renders full-size images
+and calibrates from the detector's centres. Deterministic; about 10 s.
+
+Measured here (seed 0, σ = 0.03 px; ``python -m tasks.camera_calibration``):
+joint focal error 0.012 % (camera 1) / 0.0009 % (camera 2), per-trial up to 0.096 % / 0.024 %;
+principal point of the joint fit 1.88 px (2.4 σ) / 0.29 px off.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from tasks.camera_calibration import (
+    INTRINSIC_NAMES,
+    MIN_IMAGES,
+    STD_NAMES,
+    TRIAL_COLUMNS,
+    calibrate_camera,
+    calibrate_trial,
+    compare_to_truth,
+    nominal_camera,
+    simulated_trials,
+    table3,
+    trial_views,
+)
+from tasks.campaign_plan import CampaignPlan, plan_campaign
+from tasks.machine import load_machine
+from tasks.render import ImagingConditions, render_plate_image, true_dot_centres
+
+SIGMA = 0.03  # px per coordinate
+SEED = 0
+CAMERAS = ("camera1", "camera2")
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine("prototype")
+
+
+def nominal(machine, name):
+    c = machine.cameras[name]
+    spec = {"width_px": c.width_px, "height_px": c.height_px, "pixel_size_mm": c.pixel_size_mm,
+            "focal_length_mm": c.focal_length_mm, "focus_distance_mm": c.focus_distance_mm}
+    return nominal_camera(spec, name)
+
+
+@pytest.fixture(scope="module")
+def trials(machine):
+    return {name: simulated_trials(name, SIGMA, SEED, machine=machine) for name in CAMERAS}
+
+
+@pytest.fixture(scope="module")
+def calibrations(machine, trials):
+    return {name: calibrate_camera(trials[name], nominal(machine, name)) for name in CAMERAS}
+
+
+def test_plan_gives_ten_trials_of_fifteen(trials):
+    for name in CAMERAS:
+        assert sorted(trials[name]) == [f"trial{t:02d}" for t in range(10)]
+        assert all(len(v[1]) == 15 for v in trials[name].values())
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_focal_length_within_0p05_percent(calibrations, machine, name):
+    """The best estimate (joint fit, 150 images) is within 0.05 % of the true focal length
+    (measured: 0.012 % / 0.0009 %, joint std 0.0095 % / 0.0044 %). Single 15-image trials scatter
+    by ~0.03 % (camera 1) / ~0.013 % (camera 2): per trial a 3σ bound of 0.05 % would need
+    σ ≈ 0.016 px for camera 1 (0.035 px for camera 2)."""
+    cal = calibrations[name]
+    true = machine.cameras[name]
+    err = compare_to_truth(cal, true)
+    assert abs(err["focal_error_pct"]) <= 0.05
+    assert cal.joint.ok and cal.joint.n_images == 150
+    # the joint fit has one focal length (CameraModel) and its reported std is ~0.01 %
+    assert cal.joint.camera_matrix[0, 0] == pytest.approx(cal.joint.camera_matrix[1, 1], rel=1e-12)
+    assert cal.joint.std_intrinsics[0] / true.fx_px * 100 < 0.012
+    per_trial = compare_to_truth(cal.trials, true)
+    assert per_trial["focal_error_pct"].abs().max() < 0.15  # ≤ 5 per-trial σ
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_principal_point_within_bound(calibrations, machine, name):
+    """Joint principal point within 3 reported σ (σ ≈ 0.77 px camera 1, 0.35 px camera 2) and 2.5 px."""
+    cal = calibrations[name]
+    err = compare_to_truth(cal, machine.cameras[name])
+    std = cal.joint.std_intrinsics
+    assert abs(err["cx_error_px"]) <= 3 * std[2]
+    assert abs(err["cy_error_px"]) <= 3 * std[3]
+    assert err["pp_error_px"] <= 2.5
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_reprojection_rms_at_the_noise_floor(calibrations, name):
+    """OpenCV's RMS is the norm of the 2-D residual: √2·σ·sqrt((2N − p)/2N). Per trial (N = 735
+    points, p = 99) it has ~1.9 % scatter; allow 6 %, and 2 % on the mean of 10 trials."""
+    t = calibrations[name].trials
+    assert (t["status"] == "ok").all()
+    n, p = t["n_points"].to_numpy(), 9 + 6 * t["n_images"].to_numpy()
+    expected = math.sqrt(2) * SIGMA * np.sqrt((2 * n - p) / (2 * n))
+    ratio = t["rms_px"].to_numpy() / expected
+    assert np.all(np.abs(ratio - 1) < 0.06), ratio
+    assert abs(ratio.mean() - 1) < 0.02
+    assert np.all(np.abs(t["sigma_px"] / SIGMA - 1) < 0.06)
+    joint = calibrations[name].joint
+    assert joint.sigma_px == pytest.approx(SIGMA, rel=0.02)
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_reported_standard_deviations_are_realistic(calibrations, machine, name):
+    """(estimate − truth) / OpenCV's std over the 10 trials × (fx, fy, cx, cy): RMS near 1."""
+    t = calibrations[name].trials
+    true = machine.cameras[name]
+    truth = np.array([true.fx_px, true.fy_px, true.cx_px, true.cy_px])
+    z = (t[list(INTRINSIC_NAMES[:4])].to_numpy() - truth) / t[list(STD_NAMES[:4])].to_numpy()
+    assert 0.7 < np.sqrt(np.mean(z**2)) < 1.5
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_distortion_field_inside_the_calibrated_region(calibrations, trials, machine, name):
+    """k2 and k3 trade off (k3 is barely determined by 15 views that stay off the corners), so the
+    figure of merit is the distortion field: ≤ 0.1 px wherever dots were seen (measured 0.066 /
+    0.009 px), while the extrapolation to the image corners is worse (measured 0.26 / 0.44 px)."""
+    seen = np.concatenate([uv for v in trials[name].values() for uv in v[1]])
+    err = compare_to_truth(calibrations[name], machine.cameras[name], seen)
+    assert err["distortion_max_px_seen"] < 0.1
+    assert err["distortion_max_px"] < 1.0
+    summary = calibrations[name].summary
+    assert summary.loc["k1", "max_abs"] < 0.4  # k1, p1, p2 always meet the seed's |.| < 0.4
+    assert summary.loc["p1", "max_abs"] < 0.4 and summary.loc["p2", "max_abs"] < 0.4
+    assert summary.loc["k3", "std"] > 1.0  # free k3 is not determined: the seed's bound needs fix_k3
+
+
+def test_fix_k3_keeps_all_five_below_0p4(machine, trials):
+    """With k3 fixed (at 0) every trial's coefficients meet the seed's bound (§5.2)."""
+    cal = calibrate_camera(trials["camera1"], nominal(machine, "camera1"), fix_k3=True, joint=False)
+    assert cal.best_estimate is None
+    assert (cal.trials["status"] == "ok").all()
+    assert cal.summary.loc[["k1", "k2", "p1", "p2", "k3"], "max_abs"].max() < 0.4
+    assert (cal.trials["k3"] == 0).all()
+
+
+def test_table3_layout(calibrations):
+    t3 = table3(list(calibrations.values()))
+    assert list(t3.columns) == list(CAMERAS)
+    assert list(t3.index) == [f"trial{t:02d}" for t in range(10)] + ["mean", "std"]
+    for name in CAMERAS:
+        rms = calibrations[name].trials["rms_px"]
+        assert t3.loc["mean", name] == pytest.approx(rms.mean())
+        assert calibrations[name].summary.loc["rms_px", "mean"] == pytest.approx(rms.mean())
+    assert list(calibrations["camera1"].trials.columns) == list(TRIAL_COLUMNS)
+
+
+def test_best_estimate_is_a_camera_model(calibrations, machine):
+    cal = calibrations["camera1"]
+    best = cal.best_estimate
+    assert best.name == "camera1" and (best.width_px, best.height_px) == (3072, 2048)
+    assert best.fx_px == pytest.approx(cal.joint.camera_matrix[0, 0], rel=1e-12)
+    assert best.distortion == pytest.approx(tuple(cal.joint.dist_coeffs))
+
+
+def test_compare_to_truth_of_the_truth_is_zero(machine):
+    true = machine.cameras["camera2"]
+    err = compare_to_truth(true, true)
+    assert all(abs(v) < 1e-9 for v in err.values())
+
+
+def test_partial_and_missing_detections(machine, trials):
+    """NaN rows are skipped, an all-NaN image is dropped with a message, a trial with fewer than
+    four valid images is a row with a status, never an exception."""
+    obj, img, ids = (list(x) for x in trials["camera1"]["trial00"])
+    img = [u.copy() for u in img]
+    img[0][:20] = np.nan  # partial view
+    img[1][:] = np.nan  # nothing found
+    res = calibrate_trial(obj, img, (3072, 2048), nominal(machine, "camera1"), image_ids=ids)
+    assert res.ok and res.n_images == 14 and res.n_points == 14 * 49 - 20
+    assert ids[1] not in res.image_ids and ids[1] in res.dropped and ids[1] in res.message
+    assert len(res.per_image_rms_px) == 14 and res.T_cam_plate.shape == (14, 4, 4)
+
+    bad = {"good": (obj[2:], img[2:], ids[2:]),
+           "short": (obj[:4], [img[0], img[1], img[2], np.full((49, 2), np.nan)], ids[:4])}
+    cal = calibrate_camera(bad, nominal(machine, "camera1"))
+    rows = cal.trials.set_index("trial")
+    assert rows.loc["good", "status"] == "ok"
+    assert rows.loc["short", "status"] == "too_few_images"
+    assert f"need {MIN_IMAGES}" in rows.loc["short", "message"]
+    assert cal.summary.loc["rms_px", "n_trials"] == 1
+    assert cal.joint.ok and cal.joint.n_images == 13
+
+    mismatch = calibrate_trial(obj[:3], img[:2], (3072, 2048))
+    assert mismatch.status == "bad_input"
+
+
+def test_trial_views_from_a_dots_table(tiny_campaign):
+    """The long dots table (truth/dots.parquet layout) + manifest → trial inputs in plate order."""
+    dots = pd.read_parquet(tiny_campaign / "truth" / "dots.parquet")
+    manifest = pd.read_csv(tiny_campaign / "manifest.csv")
+    plate = load_machine("prototype").plates["plate_a"]
+    first = manifest[(manifest.camera == "camera1") & (manifest.stage == "camera_calibration")].image_id.iloc[0]
+    dots = dots.sample(frac=1.0, random_state=0)  # order must not matter
+    dots = dots[~((dots["image_id"] == first) & (dots["row"] == 0) & (dots["col"] == 0))]  # a dot not found
+    views = trial_views(dots, manifest, "camera1", plate)
+    assert list(views) == ["trial00"]
+    obj, img, ids = views["trial00"]
+    assert len(ids) == 2 and obj[0].shape == (49, 3) and img[0].shape == (49, 2)
+    ref = dots[dots.image_id == first].sort_values(["row", "col"])
+    got = img[ids.index(first)]
+    idx = ref["row"].to_numpy() * 7 + ref["col"].to_numpy()
+    np.testing.assert_allclose(got[idx], ref[["u_px", "v_px"]].to_numpy())
+    assert sum(np.isnan(u).any(axis=1).sum() for u in img) == 1 and np.isnan(got[0]).all()
+    res = calibrate_trial(obj, img, (768, 512), image_ids=ids)
+    assert res.status == "too_few_images"  # two views: a status, not an exception
+
+
+def _expected_rotation_deg(uv: np.ndarray) -> float:
+    """In-plane angle of the plate's +X (column) axis on screen, ccw from +u (detector convention)."""
+    d = uv[1] - uv[0]
+    return math.degrees(math.atan2(-d[1], d[0]))
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_end_to_end_on_rendered_images(machine, name):
+    """Eight full-size (3072×2048) rendered calibration views (vignetting, gradient, defocus,
+    noise), centres from the RRHT detector, one trial: measured rms 0.008 / 0.013 px, focal
+    error 0.007 % / 0.012 %, principal point 0.96 / 0.34 px."""
+    from tasks.detection import detect_grid
+
+    poses, fixture = plan_campaign(machine, CampaignPlan(), SEED)
+    cam, plate = machine.cameras[name], machine.plates[machine.views[name]]
+    rows = np.flatnonzero((poses["camera"] == name) & (poses["stage"] == "camera_calibration"))[:8]
+    obj, img = [], []
+    for i in rows:
+        T = fixture[int(i)]
+        truth = true_dot_centres(cam, plate, T)
+        det = detect_grid(render_plate_image(cam, plate, T, ImagingConditions(), seed=int(i)), plate, "rrht",
+                          expected_rotation_deg=_expected_rotation_deg(truth))
+        assert det.ok, det.reason
+        assert np.sqrt(np.mean((det.centres - truth) ** 2)) < 0.03
+        obj.append(plate.dot_centres_mm())
+        img.append(det.centres)
+    res = calibrate_trial(obj, img, (cam.width_px, cam.height_px), nominal(machine, name))
+    assert res.ok and res.rms_px < 0.03
+    err = compare_to_truth(res, cam, np.concatenate(img))
+    assert abs(err["focal_error_pct"]) < 0.05
+    assert err["pp_error_px"] < 2.0
+    assert err["distortion_max_px_seen"] < 0.1

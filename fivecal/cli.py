@@ -68,6 +68,59 @@ def ingest(
 
 
 @app.command()
+def detect(
+    image: Annotated[Path, typer.Argument(help="an image file (any format OpenCV reads; converted to 8-bit grey)")],
+    rows: Annotated[int, typer.Option(help="dot rows of the plate")] = 7,
+    cols: Annotated[int, typer.Option(help="dot columns of the plate")] = 7,
+    pitch_mm: Annotated[float, typer.Option(help="centre-to-centre dot spacing (mm)")] = 5.0,
+    diameter_mm: Annotated[float, typer.Option(help="dot diameter (mm)")] = 2.5,
+    light_dots: Annotated[bool, typer.Option(help="light dots on a dark plate")] = False,
+    detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
+    rotation_deg: Annotated[float | None, typer.Option(help="expected in-plane rotation of the grid (deg)")] = None,
+    json_output: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
+) -> None:
+    """Run a dot-grid detector on one image and print the ordered centres with their fit quality."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    from tasks.detection import DETECTORS, detect_grid
+    from tasks.plate import DotPlate
+
+    if detector not in DETECTORS:
+        raise typer.BadParameter(f"choose one of {sorted(DETECTORS)}", param_hint="--detector")
+    raw = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        typer.echo(f"error: {image}: missing or not an image OpenCV can read", err=True)
+        raise typer.Exit(2)
+    grey = raw if raw.ndim == 2 else cv2.cvtColor(raw, cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    if grey.dtype != np.uint8:
+        grey = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots)
+    result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
+    rc = plate.row_col()
+    dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "residual_rms_px": float(q),
+             "support_ratio": float(sr)}
+            for (r, c), (u, v), q, sr in zip(rc, result.centres, result.residual_rms_px, result.support_ratio,
+                                             strict=True)]
+    if json_output:
+        typer.echo(json.dumps({"image": str(image), "ok": result.ok, "reason": result.reason,
+                               "detector": result.detector, "elapsed_s": result.elapsed_s,
+                               "rotation_deg": result.rotation_deg, "dots": dots}, indent=1))
+    else:
+        typer.echo(f"{image}: {result.detector} {'ok' if result.ok else 'FAILED: ' + result.reason} "
+                   f"({1e3 * result.elapsed_s:.0f} ms, rotation {result.rotation_deg:.2f} deg)")
+        if result.ok:
+            typer.echo(f"{'row':>4}{'col':>4}{'u_px':>12}{'v_px':>12}{'fit_rms_px':>12}{'support':>9}")
+            for d in dots:
+                typer.echo(f"{d['row']:>4}{d['col']:>4}{d['u_px']:>12.3f}{d['v_px']:>12.3f}"
+                           f"{d['residual_rms_px']:>12.3f}{d['support_ratio']:>9.2f}")
+    if not result.ok:
+        raise typer.Exit(1)
+
+
+@app.command()
 def effects() -> None:
     """List the catalogue of injectable effects with their parameters and units."""
     from tasks.effects import catalogue_text

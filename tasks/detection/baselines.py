@@ -87,13 +87,22 @@ def detect_blob(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
 
 
 def detect_hough(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
-                 px_per_mm_hint: float | None = None, mirrored: bool = False) -> GridDetection:
-    """``cv2.HoughCircles`` baseline; see the module docstring."""
+                 px_per_mm_hint: float | None = None, mirrored: bool = False,
+                 max_edge_density: float = 0.05) -> GridDetection:
+    """``cv2.HoughCircles`` baseline; see the module docstring.
+
+    Images where more than ``max_edge_density`` of the pixels are Canny edges are refused.
+    """
     t0 = time.perf_counter()
     image = check_image(image)
     _, d_min, d_max = search_scale(image.shape, plate, px_per_mm_hint, 12.0, 768)
     t1 = time.perf_counter()
     med = cv2.medianBlur(image, 5)
+    density = float(np.count_nonzero(cv2.Canny(med, 50, 100))) / med.size
+    if density > max_edge_density:  # HoughCircles' run time explodes on noise (minutes per image)
+        return GridDetection.failure(plate.rows * plate.cols, "hough", f"{100 * density:.0f}% of the pixels "
+                                     "are edges: noise or texture, no Hough search",
+                                     elapsed_s=time.perf_counter() - t0, timings_s={})
     spacing_min = d_min * plate.pitch_mm / plate.dot_diameter_mm * 0.6
     circles = cv2.HoughCircles(med, cv2.HOUGH_GRADIENT, dp=1, minDist=max(spacing_min, 2.0), param1=100,
                                param2=max(10.0, 0.3 * np.pi * d_min / 2), minRadius=int(d_min / 2),

@@ -119,6 +119,24 @@ def _print_table3(table: Path, campaign: Path) -> None:
         typer.echo(line)
 
 
+@app.command("compare-detectors")
+def compare_detectors(
+    campaign: Annotated[Path, typer.Argument(help="campaign folder (simulated: errors are scored against its truth)")],
+    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
+    = None,
+    detector: Annotated[list[str] | None, typer.Option(help="detectors to compare (repeatable)")] = None,
+    max_images_per_camera: Annotated[int, typer.Option(help="images sampled per camera")] = 20,
+    repeats: Annotated[int, typer.Option(help="timed runs per image and detector")] = 1,
+) -> None:
+    """Table 4: runtime, detection rate, centre error, PnP reprojection and pose error of each detector."""
+    from tasks.detector_comparison import format_table4, run_comparison
+
+    summary, path = run_comparison(campaign, results, detectors=tuple(detector or ("rrht", "blob", "hough")),
+                                   max_images_per_camera=max_images_per_camera, repeats=repeats)
+    typer.echo(format_table4(summary))
+    typer.echo(f"detector_comparison table: {path}")
+
+
 @app.command()
 def detect(
     image: Annotated[Path, typer.Argument(help="an image file (any format OpenCV reads; converted to 8-bit grey)")],

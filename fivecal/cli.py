@@ -44,6 +44,21 @@ def simulate(
     typer.echo(f"campaign written to {path}")
 
 
+def _on_valid_campaign(campaign: Path, run):
+    """Run ``run()`` on a campaign whose folder, metadata and manifest pass the campaign-level
+    checks; otherwise print the error (it names the file) and exit 2, before any Prefect server
+    starts or anything is written."""
+    from tasks.ingest import CampaignError, load_campaign_metadata, load_manifest
+
+    try:
+        load_campaign_metadata(campaign)
+        load_manifest(campaign)
+        return run()
+    except CampaignError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+
+
 @app.command()
 def ingest(
     campaign: Annotated[Path, typer.Argument(help="campaign folder")],
@@ -51,18 +66,14 @@ def ingest(
     = None,
 ) -> None:
     """Validate a campaign and write its images table (cached by image content)."""
-    from tasks.ingest import CampaignError, format_summary, load_campaign_metadata, load_manifest
+    from tasks.ingest import format_summary
 
-    try:
-        # campaign-level faults stop here, before any server starts or anything is written
-        load_campaign_metadata(campaign)
-        load_manifest(campaign)
+    def run():
         from flows.ingest import run_ingest
 
-        summary = run_ingest(campaign, results)
-    except CampaignError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2) from None
+        return run_ingest(campaign, results)
+
+    summary = _on_valid_campaign(campaign, run)
     typer.echo(format_summary(summary))
     typer.echo(f"images table: {summary['table']}")
 
@@ -75,17 +86,12 @@ def measure(
     detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
 ) -> None:
     """Ingest a campaign, detect every dot grid, self-calibrate the cameras and estimate plate poses."""
-    from tasks.ingest import CampaignError, load_campaign_metadata, load_manifest
-
-    try:
-        load_campaign_metadata(campaign)
-        load_manifest(campaign)
+    def run():
         from flows.measure import measure_campaign
 
-        summary = measure_campaign(str(campaign), None if results is None else str(results), detector)
-    except CampaignError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2) from None
+        return measure_campaign(str(campaign), None if results is None else str(results), detector)
+
+    summary = _on_valid_campaign(campaign, run)
     typer.echo(f"campaign {summary['campaign_id']}: {summary['n_images']} images, {summary['n_ingested_ok']} "
                f"ingested ok, {summary['n_detected']} grids found, {summary['n_poses']} poses "
                f"(cached steps: {summary['cached']})")

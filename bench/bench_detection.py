@@ -28,6 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tasks import se3
 from tasks.camera_model import CameraModel
 from tasks.detection import detect_grid
 from tasks.plate import DotPlate
@@ -42,13 +43,7 @@ PLATE_A = DotPlate(7, 7, 5.0, 2.5, dark_dots=True, margin_mm=5.0, name="a")
 PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=2.0, name="b")
 
 
-def _rot(rx: float, ry: float, rz: float) -> np.ndarray:
-    rx, ry, rz = np.radians([rx, ry, rz])
-    cx, sx, cy, sy, cz, sz = math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry), math.cos(rz), math.sin(rz)
-    r_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return r_z @ r_y @ r_x
+_rot = se3.rot_zyx_deg  # Rz · Ry · Rx, degrees
 
 
 def pose(t, rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:

@@ -240,3 +240,10 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R)
     cos_t = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
     return np.arctan2(np.linalg.norm(_axial(R), axis=-1) / 2.0, cos_t)  # arccos loses digits near 0 and pi
+
+
+def rot_zyx_deg(rx_deg: float, ry_deg: float, rz_deg: float) -> np.ndarray:
+    """Rz(rz) · Ry(ry) · Rx(rx) for angles in degrees: (3, 3). Rotates about x first, then y, then z
+    (fixed axes)."""
+    rx, ry, rz = np.radians([rx_deg, ry_deg, rz_deg])
+    return rot_z(rz) @ rot_y(ry) @ rot_x(rx)

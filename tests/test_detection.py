@@ -10,12 +10,12 @@ Every image is seeded: the file is deterministic.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import cv2
 import numpy as np
 import pytest
 
+from tasks import se3
 from tasks.camera_model import CameraModel
 from tasks.detection import DETECTORS, GridDetection, detect_grid
 from tasks.detection.chaincode import filter_edges
@@ -41,12 +41,7 @@ PLATE_A = DotPlate(7, 7, 5.0, 2.5, dark_dots=True, margin_mm=5.0, name="a")
 PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=2.0, name="b")
 
 
-def rot(rx_deg: float, ry_deg: float, rz_deg: float) -> np.ndarray:
-    rx, ry, rz = np.radians([rx_deg, ry_deg, rz_deg])
-    r_x = np.array([[1, 0, 0], [0, math.cos(rx), -math.sin(rx)], [0, math.sin(rx), math.cos(rx)]])
-    r_y = np.array([[math.cos(ry), 0, math.sin(ry)], [0, 1, 0], [-math.sin(ry), 0, math.cos(ry)]])
-    r_z = np.array([[math.cos(rz), -math.sin(rz), 0], [math.sin(rz), math.cos(rz), 0], [0, 0, 1]])
-    return r_z @ r_y @ r_x
+rot = se3.rot_zyx_deg  # Rz · Ry · Rx, degrees
 
 
 def pose(t, tilt_x=0.0, tilt_y=0.0, angle_deg=0.0) -> np.ndarray:

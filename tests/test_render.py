@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 
+from tasks import se3
 from tasks.camera_model import CameraModel, distort_normalised, project_points
 from tasks.plate import DotPlate
 from tasks.render import (
@@ -39,12 +40,7 @@ PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=3.0, name="b")
 IDEAL = ImagingConditions.ideal()
 
 
-def rot(rx_deg: float, ry_deg: float, rz_deg: float) -> np.ndarray:
-    rx, ry, rz = np.radians([rx_deg, ry_deg, rz_deg])
-    Rx = np.array([[1, 0, 0], [0, math.cos(rx), -math.sin(rx)], [0, math.sin(rx), math.cos(rx)]])
-    Ry = np.array([[math.cos(ry), 0, math.sin(ry)], [0, 1, 0], [-math.sin(ry), 0, math.cos(ry)]])
-    Rz = np.array([[math.cos(rz), -math.sin(rz), 0], [math.sin(rz), math.cos(rz), 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
+rot = se3.rot_zyx_deg  # Rz · Ry · Rx, degrees
 
 
 def pose(t, rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:

@@ -28,10 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tasks import se3
 from tasks.camera_model import CameraModel
 from tasks.detection import detect_grid
-from tasks.plate import DotPlate
+from tasks.plate import DotPlate, facing_camera_pose
 from tasks.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
 
 DIST1 = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
@@ -43,15 +42,9 @@ PLATE_A = DotPlate(7, 7, 5.0, 2.5, dark_dots=True, margin_mm=5.0, name="a")
 PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=2.0, name="b")
 
 
-_rot = se3.rot_zyx_deg  # Rz · Ry · Rx, degrees
-
-
 def pose(t, rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:
     """T_cam_plate with the printed face towards the camera; rz turns the plate clockwise on screen."""
-    T = np.eye(4)
-    T[:3, :3] = _rot(rx, ry, rz) @ np.diag([1.0, -1.0, -1.0])
-    T[:3, 3] = t
-    return T
+    return facing_camera_pose(t, rx, ry, rz)
 
 
 def scenes(n: int, seed: int = 0):

@@ -15,7 +15,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 import fivecal
 from flows.ingest import ingest_campaign
 from tasks.ingest import load_campaign_metadata
-from tasks.vision import detection_chunks, expected_rotations, plates_by_camera
+from tasks.vision import content_key, detection_chunks, expected_rotations, plates_by_camera
 from tasks.vision_steps import calibrate, detect_chunk, poses, read_images, write_table
 
 CHUNK_SIZE = 32
@@ -57,7 +57,8 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     cached["poses"] = int(pose_future.state.name == "Cached")
 
     provenance = {"fivecal_version": fivecal.__version__, "detector": detector,
-                  "images_content": ingest_summary.get("table"), "campaign": str(folder)}
+                  "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
+                  "campaign": str(folder)}
     tables = {name: str(write_table(name, campaign_id, df, provenance, root)) for name, df in
               (("dots", dots), ("camera_calibration", calibration), ("poses", pose_table))}
     summary = {

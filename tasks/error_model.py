@@ -40,6 +40,7 @@ from functools import lru_cache
 import numpy as np
 
 from tasks import se3
+from tasks.machine import AXIS_ORDER
 
 ARCSEC = np.pi / (180.0 * 3600.0)  # rad per arcsec
 UM = 1e-3  # mm per µm
@@ -200,8 +201,6 @@ class ErrorModel:
 
         q: (N, 5) joint values in AXIS_ORDER (mm, rad). context: :class:`tasks.context.PoseContext`.
         """
-        from tasks.machine import AXIS_ORDER
-
         out: dict[str, np.ndarray] = {}
         for axis, profile in self.pdge.items():
             out[axis] = profile(q[:, AXIS_ORDER.index(axis)])

@@ -53,9 +53,6 @@ class Axis:
         """Command (mm or deg) -> joint displacement (mm or rad)."""
         return np.deg2rad(command) if self.is_rotary else np.asarray(command, dtype=float)
 
-    def to_command(self, internal: np.ndarray) -> np.ndarray:
-        return np.rad2deg(internal) if self.is_rotary else np.asarray(internal, dtype=float)
-
 
 @dataclass(frozen=True)
 class Attachment:
@@ -109,9 +106,6 @@ class Machine:
                 prev = here
         return out
 
-    def axis_index(self, name: str) -> int:
-        return AXIS_ORDER.index(name)
-
     def strokes_command(self) -> np.ndarray:
         """(5, 2) stroke limits in command units (mm, deg), in AXIS_ORDER."""
         return np.array([self.axes[a].stroke for a in AXIS_ORDER], dtype=float)
@@ -122,12 +116,6 @@ class Machine:
         for i, a in enumerate(AXIS_ORDER):
             q[..., i] = self.axes[a].to_internal(q[..., i])
         return q
-
-    def internal_to_commands(self, q: np.ndarray) -> np.ndarray:
-        c = np.array(q, dtype=float, copy=True)
-        for i, a in enumerate(AXIS_ORDER):
-            c[..., i] = self.axes[a].to_command(c[..., i])
-        return c
 
 
 def _pose_from_spec(spec: dict) -> np.ndarray:

@@ -11,6 +11,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from tasks import se3
+
 
 @dataclass(frozen=True)
 class DotPlate:
@@ -55,3 +57,17 @@ class DotPlate:
     @classmethod
     def from_dict(cls, d: dict) -> DotPlate:
         return cls(**d)
+
+
+def facing_camera_pose(position_mm, rx_deg: float = 0.0, ry_deg: float = 0.0, rz_deg: float = 0.0,
+                       spin_deg: float = 0.0) -> np.ndarray:
+    """T_cam_plate (4, 4, mm) of a plate whose printed face (+Z_plate) looks at the camera.
+
+    Frontal first (plate +X along camera +X, plate +Y along camera −Y), turned by ``spin_deg``
+    about the plate normal (plate frame), then by Rz(rz)·Ry(ry)·Rx(rx) in the camera frame
+    (degrees); the plate centre at ``position_mm`` in the camera frame.
+    """
+    T = np.eye(4)
+    T[:3, :3] = se3.rot_zyx_deg(rx_deg, ry_deg, rz_deg) @ np.diag([1.0, -1.0, -1.0]) @ se3.rot_zyx_deg(0, 0, spin_deg)
+    T[:3, 3] = position_mm
+    return T

@@ -230,11 +230,6 @@ def error_motion(e: np.ndarray) -> np.ndarray:
     return out
 
 
-def pose_from_vector(p: np.ndarray) -> np.ndarray:
-    """Transform from (x, y, z [mm], rx, ry, rz [rad]) with R = Rx(rx) Ry(ry) Rz(rz)."""
-    return error_motion(p)
-
-
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Angle (rad) of rotation matrices (..., 3, 3): the norm of their log."""
     R = np.asarray(R)

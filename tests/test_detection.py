@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 import pytest
 
-from tasks import se3
 from tasks.camera_model import CameraModel
 from tasks.detection import DETECTORS, GridDetection, detect_grid
 from tasks.detection.chaincode import filter_edges
@@ -31,7 +30,7 @@ from tasks.detection.synthetic import (
     plate_homography,
     render_synthetic,
 )
-from tasks.plate import DotPlate
+from tasks.plate import DotPlate, facing_camera_pose
 from tasks.render import ImagingConditions, render_plate_image, true_dot_centres
 
 DIST = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
@@ -41,15 +40,9 @@ PLATE_A = DotPlate(7, 7, 5.0, 2.5, dark_dots=True, margin_mm=5.0, name="a")
 PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=2.0, name="b")
 
 
-rot = se3.rot_zyx_deg  # Rz · Ry · Rx, degrees
-
-
 def pose(t, tilt_x=0.0, tilt_y=0.0, angle_deg=0.0) -> np.ndarray:
     """T_cam_plate: printed face towards the camera, plate +X at ``angle_deg`` ccw on screen."""
-    T = np.eye(4)
-    T[:3, :3] = rot(tilt_x, tilt_y, 0.0) @ np.diag([1.0, -1.0, -1.0]) @ rot(0, 0, angle_deg)
-    T[:3, 3] = t
-    return T
+    return facing_camera_pose(t, tilt_x, tilt_y, spin_deg=angle_deg)
 
 
 def rms_px(a: np.ndarray, b: np.ndarray) -> float:

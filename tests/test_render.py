@@ -14,9 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from tasks import se3
 from tasks.camera_model import CameraModel, distort_normalised, project_points
-from tasks.plate import DotPlate
+from tasks.plate import DotPlate, facing_camera_pose
 from tasks.render import (
     ExtraDistortion,
     ImagingConditions,
@@ -40,15 +39,9 @@ PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=3.0, name="b")
 IDEAL = ImagingConditions.ideal()
 
 
-rot = se3.rot_zyx_deg  # Rz · Ry · Rx, degrees
-
-
 def pose(t, rx=0.0, ry=0.0, rz=0.0) -> np.ndarray:
     """T_cam_plate with the plate face (+Z_plate) towards the camera, tilted by rx, ry (deg)."""
-    T = np.eye(4)
-    T[:3, :3] = rot(rx, ry, rz) @ np.diag([1.0, -1.0, -1.0])
-    T[:3, 3] = t
-    return T
+    return facing_camera_pose(t, rx, ry, rz)
 
 
 POSE_A = pose([3.0, -2.0, 280.0], 0.4, 0.3, 5.0)

@@ -5,12 +5,15 @@ Stages:
   views of its plate held on a tilting fixture (the plate pose relative to the camera is free;
   the machine stands still). Plate b only turns in its own plane on the A axis, so the fixture
   is needed to give the tilted views that camera self-calibration requires.
-- ``pdge``: per axis, ``positions`` positions × ``repeats`` repeats; X/Y in 1 mm steps, Z in
-  0.1 mm steps, A/C in 1° steps, centred on home so that the sweep includes zero. Repeats
-  alternate direction (forward, backward, ...), so reversal errors show. Camera 1 measures
-  X/Y/Z/C on plate a, camera 2 measures A on plate b.
+- ``pdge``: per axis, ``positions`` positions × ``repeats`` repeats, centred on home so that the
+  sweep includes zero: X/Y in 1 mm and A in 1° steps as in the seed; Z in 0.2 mm steps (the
+  seed's 0.1 mm spans only ±2.5 mm, less than the five-axis poses use) and C over its whole
+  stroke (360°/positions apart), because the five-axis poses turn C through all of it and a
+  PDGE is only known where it was swept. Repeats alternate direction (forward, backward, ...),
+  so reversal errors show. Camera 1 measures X/Y/Z/C on plate a, camera 2 measures A on plate b.
 - ``pige``: five-axis poses (A within ±``max_tilt_deg``, C over its stroke) with camera 1 aimed
-  at plate a plus random lateral and height offsets.
+  at plate a plus random lateral and height offsets. The defaults keep every axis inside its
+  swept range (A ±24° within the A sweep, Y = −40 sin A ± 5 mm within ±25 mm, Z within ±5 mm).
 - ``validation``: held-out poses drawn like the ``pige`` ones from an independent stream.
 
 Time: each image takes ``seconds_per_image``; temperature follows a warm-up curve with a slow
@@ -29,7 +32,7 @@ from tasks.kinematics import forward
 from tasks.machine import AXIS_ORDER, Machine
 
 STAGES = ("camera_calibration", "pdge", "pige", "validation")
-SWEEP_STEP = {"X": 1.0, "Y": 1.0, "Z": 0.1, "A": 1.0, "C": 1.0}  # mm or deg per step (§5.2)
+SWEEP_STEP = {"X": 1.0, "Y": 1.0, "Z": 0.2, "A": 1.0}  # mm or deg per step; C spans its stroke
 SWEEP_CAMERA = {"X": "camera1", "Y": "camera1", "Z": "camera1", "C": "camera1", "A": "camera2"}
 
 
@@ -43,9 +46,9 @@ class CampaignPlan:
     sweep_repeats: int = 5
     pige_poses: int = 300
     validation_poses: int = 100
-    max_tilt_deg: float = 30.0
-    lateral_offset_mm: float = 10.0
-    height_offset_mm: float = 3.0
+    max_tilt_deg: float = 24.0
+    lateral_offset_mm: float = 5.0
+    height_offset_mm: float = 1.0
     seconds_per_image: float = 3.0
 
     @classmethod
@@ -74,9 +77,17 @@ def aim_camera(machine: Machine, camera: str, rotary_deg: np.ndarray, offsets_mm
     return cmd
 
 
+def sweep_positions(machine: Machine, axis: str, positions: int) -> np.ndarray:
+    """The commanded positions (mm or deg) of ``axis``' PDGE sweep, centred on home."""
+    k = np.arange(positions) - positions // 2
+    if axis in SWEEP_STEP:
+        return k * SWEEP_STEP[axis]
+    lo, hi = machine.axes[axis].stroke
+    return k * (hi - lo) / positions
+
+
 def _sweep(machine: Machine, axis: str, plan: CampaignPlan) -> pd.DataFrame:
-    k = np.arange(plan.sweep_positions) - plan.sweep_positions // 2
-    positions = k * SWEEP_STEP[axis]
+    positions = sweep_positions(machine, axis, plan.sweep_positions)
     rows = []
     for r in range(plan.sweep_repeats):
         order = positions if r % 2 == 0 else positions[::-1]

@@ -186,11 +186,20 @@ class ErrorModel:
     pdge: {axis: AxisProfile}; axes without a profile have no PDGE.
     effects: extra physical effects (see :mod:`tasks.effects`), each adding to joint error
     screws, attachment poses or camera intrinsics.
+    joint_offsets: {axis: (6,)} constant error motions added to the axis' PDGE (mm, rad): the
+    home values that identification fits when its PDGE profiles are referred to home.
+    joint_slopes: {axis: (6,)} error motions per unit of the axis' position (per mm or per rad),
+    e.g. the squareness of a linear axis as the slope of its perpendicular straightness.
+    attachment_offsets: {attachment: (6,)} constant mounting errors in the attachment's own
+    frame (mm, rad), e.g. a camera's hand–eye correction.
     """
 
     pige: dict[str, float] = field(default_factory=dict)
     pdge: dict[str, AxisProfile] = field(default_factory=dict)
     effects: list = field(default_factory=list)
+    joint_offsets: dict[str, np.ndarray] = field(default_factory=dict)
+    attachment_offsets: dict[str, np.ndarray] = field(default_factory=dict)
+    joint_slopes: dict[str, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def none(cls) -> ErrorModel:
@@ -204,6 +213,11 @@ class ErrorModel:
         out: dict[str, np.ndarray] = {}
         for axis, profile in self.pdge.items():
             out[axis] = profile(q[:, AXIS_ORDER.index(axis)])
+        for axis, offset in self.joint_offsets.items():
+            out[axis] = out[axis] + offset if axis in out else np.tile(np.asarray(offset, dtype=float), (q.shape[0], 1))
+        for axis, slope in self.joint_slopes.items():
+            e = np.outer(q[:, AXIS_ORDER.index(axis)], np.asarray(slope, dtype=float))
+            out[axis] = out[axis] + e if axis in out else e
         for effect in self.effects:
             for axis, e in effect.joint_errors(machine, q, context).items():
                 out[axis] = out[axis] + e if axis in out else np.broadcast_to(e, (q.shape[0], 6)).copy()
@@ -211,7 +225,8 @@ class ErrorModel:
 
     def attachment_error_vectors(self, machine, q: np.ndarray, context) -> dict[str, np.ndarray]:
         """{attachment: (N, 6)} error motions of attachments in their own frame (mm, rad)."""
-        out: dict[str, np.ndarray] = {}
+        out: dict[str, np.ndarray] = {name: np.tile(np.asarray(e, dtype=float), (q.shape[0], 1))
+                                      for name, e in self.attachment_offsets.items()}
         for effect in self.effects:
             for name, e in effect.attachment_errors(machine, q, context).items():
                 e = np.broadcast_to(e, (q.shape[0], 6))
@@ -224,6 +239,10 @@ class ErrorModel:
             "pige_units": {n: pige_unit(n) for n in self.pige},
             "pdge": {a: p.to_dict() for a, p in self.pdge.items()},
             "effects": [e.spec() for e in self.effects],
+            "joint_offsets": {a: (np.asarray(v) / COMPONENT_SCALE).tolist() for a, v in self.joint_offsets.items()},
+            "attachment_offsets": {a: (np.asarray(v) / COMPONENT_SCALE).tolist()
+                                   for a, v in self.attachment_offsets.items()},
+            "joint_slopes": {a: (np.asarray(v) / COMPONENT_SCALE).tolist() for a, v in self.joint_slopes.items()},
         }
 
     @classmethod
@@ -234,4 +253,10 @@ class ErrorModel:
             pige={n: pige_to_internal(n, float(v)) for n, v in d.get("pige", {}).items()},
             pdge={a: AxisProfile.from_dict(p) for a, p in d.get("pdge", {}).items()},
             effects=[parse_effect(s) for s in d.get("effects", [])],
+            joint_offsets={a: np.asarray(v, dtype=float) * COMPONENT_SCALE
+                           for a, v in d.get("joint_offsets", {}).items()},
+            attachment_offsets={a: np.asarray(v, dtype=float) * COMPONENT_SCALE
+                                for a, v in d.get("attachment_offsets", {}).items()},
+            joint_slopes={a: np.asarray(v, dtype=float) * COMPONENT_SCALE
+                          for a, v in d.get("joint_slopes", {}).items()},
         )

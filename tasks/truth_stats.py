@@ -80,9 +80,14 @@ def pdge_magnitudes(machine: Machine, errors: ErrorModel, sweep_commands: dict[s
     return pd.DataFrame(rows)
 
 
-def sweep_positions(positions: int = 50) -> dict[str, np.ndarray]:
-    """The PDGE sweep positions of each axis (command units), as planned by tasks.campaign_plan."""
-    from tasks.campaign_plan import SWEEP_STEP
+SEED_SWEEP_STEP = {"X": 1.0, "Y": 1.0, "Z": 0.1, "A": 1.0, "C": 1.0}  # mm or deg (§5.2)
 
+
+def sweep_positions(positions: int = 50) -> dict[str, np.ndarray]:
+    """The seed's PDGE sweep positions of each axis (command units): 50 steps of 1 mm / 0.1 mm / 1°.
+
+    Fig. 11's means refer to these; the prototype's true PDGEs are scaled to them. (A campaign's
+    own sweeps are planned by :func:`tasks.campaign_plan.sweep_positions`.)
+    """
     k = np.arange(positions) - positions // 2
-    return {a: k * SWEEP_STEP[a] for a in AXIS_ORDER}
+    return {a: k * SEED_SWEEP_STEP[a] for a in AXIS_ORDER}

@@ -47,9 +47,10 @@ def test_default_plan_has_the_seeds_stage_sizes(default_plan):
     assert per_trial.eq(15).all() and len(per_trial) == 20
 
 
-def test_sweeps_step_as_the_seed_and_alternate_direction(default_plan):
+def test_sweeps_step_as_planned_and_alternate_direction(default_plan):
+    """X/Y/A as the seed; Z in 0.2 mm steps and C over its whole stroke (see tasks.campaign_plan)."""
     plan, _ = default_plan
-    for axis, step in {"X": 1.0, "Y": 1.0, "Z": 0.1, "A": 1.0, "C": 1.0}.items():
+    for axis, step in {"X": 1.0, "Y": 1.0, "Z": 0.2, "A": 1.0, "C": 7.2}.items():
         s = plan[(plan.stage == "pdge") & (plan.group == axis)]
         first = s[s.repeat == 0][axis].to_numpy()
         assert np.allclose(np.diff(first), step) and 0.0 in first and len(first) == 50
@@ -63,6 +64,15 @@ def test_every_planned_view_keeps_the_whole_plate_in_the_image(machine, default_
     errors = load_prototype_errors()
     truth = simulate_truth(machine, errors, plan, fixture, size="full")
     assert truth.in_view.all()
+
+
+def test_five_axis_poses_stay_inside_the_swept_ranges(default_plan):
+    plan, _ = default_plan
+    sweeps = plan[plan.stage == "pdge"]
+    five_axis = plan[plan.stage.isin(["pige", "validation"])]
+    for axis in "XYZA":
+        swept = sweeps[sweeps.group == axis][axis]
+        assert five_axis[axis].between(swept.min(), swept.max()).all(), axis
 
 
 def test_same_seed_gives_byte_identical_images(machine):

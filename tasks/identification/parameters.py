@@ -1,0 +1,87 @@
+"""The constant parameters that the PIGE fit identifies, and how they enter the error model.
+
+Each parameter is one component of a constant error screw (internal units mm or rad):
+- ``pige``: the 11 PIGEs of Table 2 (:data:`tasks.error_model.PIGE_SCREWS`);
+- ``constant``: home values of a joint's error motion that no PIGE covers but that the referred
+  PDGE profiles leave out (the zero offsets of C and A, the axial offset of C);
+- ``squareness``: the slope of a linear axis' straightness perpendicular to its motion (µm per
+  mm, shown as arcsec): Y toward X, Z toward X and Z toward Y, the motion-direction errors of eq. 21;
+- ``mount``: the hand–eye correction of a camera on its link (rotations and the depth along the
+  optical axis). It absorbs what self-calibration leaves in the intrinsics: a principal-point error
+  acts as a small camera rotation and a focal-length error as a depth offset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from tasks.error_model import ARCSEC, PIGE_NAMES, PIGE_SCREWS, UM, ErrorModel
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """name: shown in tables. kind: "pige" | "constant" | "mount". target: joint or attachment.
+    component: 0..5 of (dx, dy, dz, ex, ey, ez)."""
+
+    name: str
+    kind: str
+    target: str
+    component: int
+
+    @property
+    def is_angle(self) -> bool:
+        return self.component >= 3 or self.kind == "squareness"
+
+    @property
+    def unit(self) -> str:
+        return "arcsec" if self.is_angle else "um"
+
+    @property
+    def scale(self) -> float:
+        """Internal units per file unit (mm per µm or rad per arcsec): also the Jacobian step."""
+        return ARCSEC if self.is_angle else UM
+
+
+COMPONENT_NAMES = ("dx", "dy", "dz", "ex", "ey", "ez")
+
+
+def pige_params(names=PIGE_NAMES) -> list[ParamSpec]:
+    return [ParamSpec(n, "pige", PIGE_SCREWS[n][0], PIGE_SCREWS[n][1]) for n in names]
+
+
+def constant_param(joint: str, component: int) -> ParamSpec:
+    return ParamSpec(f"{joint}.{COMPONENT_NAMES[component]}0", "constant", joint, component)
+
+
+def squareness_param(axis: str, component: int) -> ParamSpec:
+    """Slope of ``axis``' translation ``component`` (0..2) per unit of travel; unit: arcsec (rad)."""
+    return ParamSpec(f"{axis}.{COMPONENT_NAMES[component]}_slope", "squareness", axis, component)
+
+
+def mount_param(attachment: str, component: int) -> ParamSpec:
+    return ParamSpec(f"{attachment}.{COMPONENT_NAMES[component]}", "mount", attachment, component)
+
+
+def default_parameters(camera: str = "camera1") -> list[ParamSpec]:
+    """The 11 PIGEs, C's zero and axial offsets, the three linear-axis squareness slopes of eq. 21
+    and ``camera``'s hand–eye rotation and depth (20 parameters)."""
+    return [*pige_params(), constant_param("C", 5), constant_param("C", 2),
+            squareness_param("Y", 0), squareness_param("Z", 0), squareness_param("Z", 1),
+            *(mount_param(camera, k) for k in (3, 4, 5, 2))]
+
+
+def apply_parameters(base: ErrorModel, specs: list[ParamSpec], values: np.ndarray) -> ErrorModel:
+    """``base`` with the parameters set to ``values`` (internal units), added to what base holds."""
+    pige = dict(base.pige)
+    joints = {k: np.array(v, dtype=float) for k, v in base.joint_offsets.items()}
+    mounts = {k: np.array(v, dtype=float) for k, v in base.attachment_offsets.items()}
+    slopes = {k: np.array(v, dtype=float) for k, v in base.joint_slopes.items()}
+    targets = {"constant": joints, "mount": mounts, "squareness": slopes}
+    for spec, v in zip(specs, values, strict=True):
+        if spec.kind == "pige":
+            pige[spec.name] = pige.get(spec.name, 0.0) + float(v)
+        else:
+            targets[spec.kind].setdefault(spec.target, np.zeros(6))[spec.component] += float(v)
+    return replace(base, pige=pige, joint_offsets=joints, attachment_offsets=mounts, joint_slopes=slopes)

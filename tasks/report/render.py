@@ -1,0 +1,375 @@
+"""Assemble and write the calibration report (science only, no Prefect).
+
+SYNOPSIS::
+
+    from tasks.report import ReportData, write_report
+    paths = write_report(Path("reports/demo/20261121T101500-ab12cd"), ReportData(...))
+    paths["markdown"], paths["html"], paths["figures"]
+
+The report follows the seed's §5.2: a summary, Table 3 (camera self-calibration), Table 4
+(detectors), Table 5 (kinematic formulations), Fig. 10 and Fig. 11 (PDGE), Table 6 (PIGE),
+Fig. 12 (single-direction errors before calibration), Fig. 13 with the before/after table,
+then the caller's extra sections and figures and the provenance. The Markdown is the source;
+the HTML is converted from it with markdown-it-py (CommonMark + tables, raw HTML escaped) and
+every ``figures/<stem>.png`` image is embedded as a base64 data URI, so index.html stands alone.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import re
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pandas as pd
+
+from tasks.report import figures as F
+from tasks.report import tables as T
+from tasks.truth_stats import SEED_AFTER, SEED_BEFORE
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+NOT_AVAILABLE = "Not available for this run."
+STEM = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+PDGE_REQUIRED = ("axis", "position", *T.TRANSLATION, *T.ROTATION)
+PIGE_REQUIRED = ("name", "value", "uncertainty", "identifiable")
+VERIFICATION_REQUIRED = ("pose", "phase", "source", "position_um", "orientation_arcsec")
+CAMERA_REQUIRED = ("camera", "trial", "status", "rms_px")
+FORMULATION_REQUIRED = ("formulation", "mean_single_run_ms", "total_300_ms", "position_error_norm_um",
+                        "orientation_error_norm_arcsec")
+
+
+@dataclass
+class ReportData:
+    """Everything one report shows. Frames as in docs/report.md (units in the column names)."""
+
+    campaign_id: str
+    run: str                      # run folder name, e.g. "20261121T101500-ab12cd"
+    pdge: pd.DataFrame
+    pige: pd.DataFrame
+    verification: pd.DataFrame
+    camera_calibration: pd.DataFrame | None = None
+    detector_comparison: pd.DataFrame | None = None
+    formulations: pd.DataFrame | None = None
+    identifiability: list[str] = field(default_factory=list)
+    extra_sections: list[tuple[str, str]] = field(default_factory=list)
+    extra_figures: list[tuple[str, Figure]] = field(default_factory=list)
+    provenance: dict = field(default_factory=dict)
+    simulated: bool = False
+
+
+# --------------------------------------------------------------------------------------------
+# Input checks
+# --------------------------------------------------------------------------------------------
+
+
+def _missing(df: pd.DataFrame | None, required) -> list[str]:
+    return [c for c in required if df is None or c not in df.columns]
+
+
+def check_inputs(data: ReportData) -> None:
+    """Raise ValueError naming the missing columns of a required frame (pdge, pige, verification)
+    and TypeError for a non-DataFrame; extra figure stems must be file-name safe and unique."""
+    for name, required in (("pdge", PDGE_REQUIRED), ("pige", PIGE_REQUIRED), ("verification", VERIFICATION_REQUIRED)):
+        df = getattr(data, name)
+        if not isinstance(df, pd.DataFrame):
+            raise TypeError(f"ReportData.{name} must be a pandas DataFrame, not {type(df).__name__}")
+        if miss := _missing(df, required):
+            raise ValueError(f"ReportData.{name} lacks the column(s) {', '.join(miss)}")
+    stems = [s for s, _ in data.extra_figures]
+    bad = [s for s in stems if not STEM.match(str(s)) or str(s).startswith(("fig10_", "fig11_", "fig12_", "fig13_"))]
+    if bad or len(set(stems)) != len(stems):
+        raise ValueError(f"extra figure stems must be unique file-name stems not starting with fig10_…fig13_: {stems}")
+
+
+# --------------------------------------------------------------------------------------------
+# Sections (each returns Markdown; figures are saved as they are drawn)
+# --------------------------------------------------------------------------------------------
+
+
+class _FigureSink:
+    """Saves figures into ``folder`` as ``<stem>.png`` (150 dpi) and returns their Markdown."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.stems: list[str] = []
+
+    def add(self, stem: str, fig: Figure, caption: str, own: bool = True) -> str:
+        F.save_png(fig, self.folder / f"{stem}.png")
+        if own:
+            fig.clear()  # release the artists now; the Figure has no pyplot reference to close
+        self.stems.append(stem)
+        return f"![{caption}](figures/{stem}.png)\n\n*{caption}*"
+
+
+def _mean_of(table: pd.DataFrame, source: str, quantity: str, phase: str) -> float:
+    sel = table[(table["source"] == source) & (table["quantity"] == quantity) & (table["statistic"] == "mean")]
+    return float(sel[phase].iloc[0]) if len(sel) else float("nan")
+
+
+def _arrow(table: pd.DataFrame, source: str, quantity: str, unit: str) -> str:
+    before, after = _mean_of(table, source, quantity, "before"), _mean_of(table, source, quantity, "after")
+    rate = T._rate(before, after)
+    tail = f" ({T.fmt(rate, 1)} % better)" if not T.is_missing(rate) else ""
+    return f"{T.fmt_unit(before, unit)} → {T.fmt_unit(after, unit)} {T.UNIT_LABEL[unit]}{tail}"
+
+
+def summary_section(data: ReportData, ba: pd.DataFrame) -> str:
+    """The opening summary: campaign, run, data origin and the before → after mean errors."""
+    lines = [f"- **Campaign:** `{data.campaign_id}`", f"- **Run:** `{data.run}`",
+             f"- **Data:** {'simulated (virtual machine; truth available)' if data.simulated else 'measured'}"]
+    sources = [s for s in T.SOURCES if s in set(ba["source"])]
+    for s in sources:
+        label = "VBM" if s == "vbm" else "truth (simulator)"
+        lines.append(f"- **Mean position error, {label}:** {_arrow(ba, s, 'position', 'um')}")
+        lines.append(f"- **Mean orientation error, {label}:** {_arrow(ba, s, 'orientation', 'arcsec')}")
+    if not sources:
+        lines.append(f"- **Before/after errors:** {NOT_AVAILABLE}")
+    sb, sa = SEED_BEFORE, SEED_AFTER
+    lines.append(f"- **The seed (§5.2):** {sb['position_mean_um']:.2f} → {sa['position_mean_um']:.2f} µm "
+                 f"and {sb['orientation_mean_arcsec']:.1f} → {sa['orientation_mean_arcsec']:.1f} arcsec "
+                 f"(published rates {T.SEED_IMPROVEMENT_PCT['position']:.1f} % and "
+                 f"{T.SEED_IMPROVEMENT_PCT['orientation']:.1f} %)")
+    return "## Summary\n\n" + "\n".join(lines)
+
+
+def camera_section(data: ReportData) -> str:
+    """Table 3 (trial RMS per camera, mean, std), the joint intrinsics and the distortion check."""
+    head = "## Table 3 — Camera self-calibration\n\n"
+    df = T.for_campaign(data.camera_calibration, data.campaign_id)
+    if df is None or df.empty or _missing(df, CAMERA_REQUIRED):
+        return head + NOT_AVAILABLE
+    trials = df[df["trial"].astype(str) != "joint"]
+    if trials.duplicated(["trial", "camera"]).any():
+        return head + f"{NOT_AVAILABLE} (the camera_calibration table has duplicate trial rows)"
+    parts = [head + "Reprojection RMS (px) of each self-calibration trial; mean and std over the ok trials.\n\n"
+             + (T.format_table3(df) if not trials.empty else NOT_AVAILABLE)]
+    if (joint := T.format_joint_intrinsics(df)) is not None:
+        parts.append("Joint best estimate per camera (value ± OpenCV's standard deviation):\n\n" + joint)
+    if (check := T.distortion_check(df)) is not None:
+        parts.append(check)
+    return "\n\n".join(parts)
+
+
+def detector_section(data: ReportData) -> str:
+    """Table 4 with ``tasks.detector_comparison.format_table4``."""
+    from tasks.detector_comparison import SUMMARY_COLUMNS, format_table4
+
+    head = "## Table 4 — Target detection with PnP\n\n"
+    df = T.for_campaign(data.detector_comparison, data.campaign_id)
+    if df is None or df.empty or _missing(df, SUMMARY_COLUMNS):
+        return head + NOT_AVAILABLE
+    return head + ("Runtime, detection rate, centre and pose errors per detector (bold: all cameras pooled); "
+                   "see docs/detector-comparison.md.\n\n" + format_table4(df))
+
+
+def formulation_section(data: ReportData) -> str:
+    """Table 5: kinematic formulations compared."""
+    head = "## Table 5 — Kinematic modelling formulations\n\n"
+    df = data.formulations
+    if df is None or df.empty or _missing(df, FORMULATION_REQUIRED):
+        return head + NOT_AVAILABLE
+    return head + ("Mean single-run time, total time to build 300 sets of error matrices, and the error norms "
+                   "of each formulation.\n\n" + T.format_table5(df))
+
+
+def pdge_section(data: ReportData, sink: _FigureSink) -> str:
+    """Fig. 10 (one figure per axis), its quality table, Fig. 11 and the magnitude table."""
+    head10 = "## Fig. 10 — PDGE measurement\n\n"
+    head11 = "## Fig. 11 — PDGE distributions\n\n"
+    axes = T.axes_in(data.pdge)
+    if not axes:
+        return head10 + NOT_AVAILABLE + "\n\n" + head11 + NOT_AVAILABLE
+    parts = [head10 + "Error motions of each axis against its position: points are the mean over the repeats "
+             "with ±1 standard error, the line is the fitted smooth model"
+             + (", the dashed line the simulator's truth in the same gauge." if data.simulated else ".")]
+    for axis in axes:
+        parts.append(sink.add(f"fig10_pdge_{axis}", F.fig10_pdge(data.pdge, axis, data.simulated),
+                              f"Fig. 10 — PDGE of the {axis} axis"))
+    parts.append("Measurement quality per axis (s.e. = standard error of a measured point; z = (measured − "
+                 "reference)/s.e.):\n\n" + T.format_pdge_quality(T.pdge_quality(data.pdge), data.simulated))
+    parts.append(head11 + "Histograms of the translational and rotational PDGE magnitudes over each sweep with "
+                 "the maximum-likelihood normal fit; the seed's Fig. 11 means beside.")
+    parts.append(sink.add("fig11_pdge_histograms", F.fig11_histograms(data.pdge),
+                          "Fig. 11 — PDGE magnitude histograms"))
+    parts.append(T.format_pdge_magnitudes(T.pdge_magnitudes(data.pdge), data.simulated))
+    return "\n\n".join(parts)
+
+
+def pige_section(data: ReportData) -> str:
+    """Table 6 (PIGE ± standard uncertainty), the uncertainty coverage check and the identifiability notes."""
+    head = "## Table 6 — Identified PIGEs\n\n"
+    parts = []
+    if data.pige.empty:
+        parts.append(head + NOT_AVAILABLE)
+    else:
+        parts.append(head + "Estimates with their standard uncertainty (k = 1)"
+                     + ("; truth in the identification's gauge and the simulator's raw PIGE; abs(est − truth)/u "
+                        "should be below 2 for about 95 % of the parameters." if data.simulated else ".")
+                     + "\n\n" + T.format_pige(data.pige, data.simulated))
+        cov = T.pige_coverage(data.pige)
+        if data.simulated and cov["n"]:
+            parts.append(f"Uncertainty check over {cov['n']} identified parameters with a truth: "
+                         f"{100 * cov['within_1u']:.0f} % within 1u (68 % expected), "
+                         f"{100 * cov['within_2u']:.0f} % within 2u (95 % expected), RMS of "
+                         f"abs(est − truth)/u = {cov['rms_z']:.2f} (1 expected).")
+        if cov["n_unidentifiable"]:
+            parts.append(f"{cov['n_unidentifiable']} parameter(s) unidentifiable from this campaign.")
+    ident = "### Identifiability\n\n" + ("\n".join(f"- {s}" for s in data.identifiability)
+                                        if data.identifiability else "No unidentifiable directions reported.")
+    parts.append(ident)
+    return "\n\n".join(parts)
+
+
+def direction_section(data: ReportData, sink: _FigureSink) -> str:
+    """Fig. 12 and the per-direction statistics before calibration."""
+    head = "## Fig. 12 — Single-direction errors before calibration\n\n"
+    v = data.verification
+    before = v[(v["phase"].astype(str) == "before") & (v["source"].astype(str) == "vbm")]
+    if before.empty or _missing(v, T.DIRECTIONS):
+        return head + NOT_AVAILABLE
+    stats = T.direction_stats(v, "before")
+    return "\n\n".join([
+        head + "Tip position (µm) and orientation (arcsec) error components before calibration, as the VBM "
+        "measures them, against the validation pose index; the seed's standard deviations beside.",
+        sink.add("fig12_single_direction_before", F.fig12_single_direction(v),
+                 "Fig. 12 — single-direction errors before calibration (VBM)"),
+        T.format_direction_stats(stats)])
+
+
+def before_after_section(data: ReportData, ba: pd.DataFrame, sink: _FigureSink) -> str:
+    """Fig. 13, the before/after table beside the seed's figures and the VBM-against-truth check."""
+    head = "## Fig. 13 — Before and after compensation\n\n"
+    if ba.empty:
+        return head + NOT_AVAILABLE
+    parts = [head + "Histograms of the tip error norms over the validation poses before and after compensation"
+             + (" (top: VBM, bottom: truth)." if data.simulated else " (VBM)."),
+             sink.add("fig13_before_after", F.fig13_before_after(data.verification, data.simulated),
+                      "Fig. 13 — position and orientation error before and after calibration"),
+             "### Before/after statistics beside the seed\n\nmean/max/std over the validation poses (std with "
+             "ddof = 1); improvement = 1 − after/before of the means"
+             + ("; noise floor = mean expected error norm from measurement noise alone." if
+                ba[["noise_floor_before", "noise_floor_after"]].notna().any().any() else ".")
+             + "\n\n" + T.format_before_after(ba),
+             T.seed_rate_note()]
+    if data.simulated and not (vt := T.vbm_vs_truth(data.verification)).empty:
+        parts.append("### VBM against truth on the validation poses\n\nHow far the vision measurement of the "
+                     "tip error is from the simulator's truth, pose by pose:\n\n" + T.format_vbm_vs_truth(vt))
+    return "\n\n".join(parts)
+
+
+def extras_section(data: ReportData, sink: _FigureSink) -> str:
+    """The caller's sections (verbatim Markdown) and figures."""
+    parts = [f"## {title}\n\n{body.strip()}" for title, body in data.extra_sections]
+    if data.extra_figures:
+        figs = [sink.add(str(stem), fig, str(stem), own=False) for stem, fig in data.extra_figures]
+        parts.append("## Additional figures\n\n" + "\n\n".join(figs))
+    return "\n\n".join(parts)
+
+
+def provenance_section(data: ReportData) -> str:
+    """The provenance dict as pretty-printed JSON (keys sorted)."""
+    text = json.dumps(data.provenance, indent=2, sort_keys=True, ensure_ascii=False, default=str)
+    fence = "`" * max(3, 1 + max((len(m) for m in re.findall(r"`+", text)), default=0))
+    return f"## Provenance\n\n{fence}json\n{text}\n{fence}"
+
+
+def build_markdown(data: ReportData, figures_dir: Path) -> str:
+    """The whole report as Markdown; figures are written into ``figures_dir`` on the way."""
+    sink = _FigureSink(figures_dir)
+    ba = T.before_after_table(data.verification)
+    sections = [f"# Calibration report — campaign {data.campaign_id}, run {data.run}",
+                summary_section(data, ba), camera_section(data), detector_section(data), formulation_section(data),
+                pdge_section(data, sink), pige_section(data), direction_section(data, sink),
+                before_after_section(data, ba, sink), extras_section(data, sink), provenance_section(data)]
+    return "\n\n".join(s for s in sections if s) + "\n"
+
+
+# --------------------------------------------------------------------------------------------
+# HTML
+# --------------------------------------------------------------------------------------------
+
+CSS = """
+body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; max-width: 1200px; margin: 2em auto;
+       padding: 0 1em; color: #222; line-height: 1.45; }
+h1 { font-size: 1.6em; border-bottom: 2px solid #444; padding-bottom: .3em; }
+h2 { font-size: 1.3em; margin-top: 2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 1em 0; font-size: .85em; display: block; overflow-x: auto; }
+th, td { border: 1px solid #ccc; padding: .25em .6em; }
+th { background: #f0f0f0; }
+tr:nth-child(even) td { background: #fafafa; }
+img { max-width: 100%; height: auto; display: block; margin: 1em 0 .2em; }
+pre { background: #f6f6f6; padding: 1em; overflow-x: auto; font-size: .85em; }
+code { font-family: ui-monospace, Menlo, Consolas, monospace; }
+"""
+
+
+def markdown_to_html(markdown: str, images: dict[str, bytes], title: str) -> str:
+    """A self-contained HTML page: the Markdown rendered by markdown-it-py (CommonMark + tables,
+    raw HTML escaped), each image whose src is a key of ``images`` (e.g. "figures/fig11.png")
+    replaced by a data:image/png;base64 URI, CSS inline."""
+    from markdown_it import MarkdownIt
+
+    md = MarkdownIt("commonmark", {"html": False}).enable("table")
+    tokens = md.parse(markdown)
+    for token in tokens:
+        for child in token.children or ():
+            src = child.attrGet("src") if child.type == "image" else None
+            if src in images:
+                child.attrSet("src", "data:image/png;base64," + base64.b64encode(images[src]).decode("ascii"))
+    body = md.renderer.render(tokens, md.options, {})
+    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
+            f'<meta name="viewport" content="width=device-width, initial-scale=1">\n'
+            f"<title>{html.escape(title)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n{body}</body>\n</html>\n")
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------
+
+
+def _check_target(out_dir: Path) -> None:
+    """Refuse to replace a file, or a non-empty folder that is not a previous report."""
+    if out_dir.is_symlink() or (out_dir.exists() and not out_dir.is_dir()):
+        raise FileExistsError(f"{out_dir} exists and is not a report folder")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "report.md").is_file():
+        raise FileExistsError(f"{out_dir} is a non-empty folder without report.md: refusing to replace it")
+
+
+def write_report(out_dir: Path, data: ReportData) -> dict[str, Path]:
+    """Write ``out_dir/report.md``, ``out_dir/index.html`` (self-contained: PNGs embedded as
+    base64 data URIs, CSS inline) and ``out_dir/figures/*.png`` (150 dpi).
+
+    Atomic: the report is built in a sibling temporary folder, then swapped in by rename
+    (``tasks.results_lake``'s exchange), so ``out_dir`` is either absent/the old report or the
+    whole new one; a previous report there is replaced whole. Raises ValueError/TypeError for
+    malformed required inputs (before anything is written) and FileExistsError when ``out_dir``
+    is a file or a non-empty folder that is not a report.
+    Returns {"markdown": report.md, "html": index.html, "figures": the figures folder}.
+    """
+    from tasks.results_lake import _swap_in
+
+    out_dir = Path(out_dir).absolute()
+    check_inputs(data)
+    _check_target(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-"))
+    try:
+        figures_dir = staging / "figures"
+        figures_dir.mkdir()
+        markdown = build_markdown(data, figures_dir)
+        (staging / "report.md").write_text(markdown, encoding="utf-8")
+        images = {f"figures/{p.name}": p.read_bytes() for p in sorted(figures_dir.glob("*.png"))}
+        title = f"fivecal report — {data.campaign_id} / {data.run}"
+        (staging / "index.html").write_text(markdown_to_html(markdown, images, title), encoding="utf-8")
+        staging.chmod(0o755)  # mkdtemp creates 0700
+        _swap_in(staging, out_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)  # the old report after a swap, or a failed build
+    return {"markdown": out_dir / "report.md", "html": out_dir / "index.html", "figures": out_dir / "figures"}

@@ -1,0 +1,147 @@
+"""Calibrate a campaign (§3.3, §4.2, §5.2): measure it, extract the PDGEs, identify the PIGEs,
+compensate the validation poses, verify them on a second capture and write the report.
+
+Writes the ``pdge``, ``pige``, ``compensation``, ``verification`` and ``formulations`` tables
+and ``reports/<campaign_id>/<run>/``. Every stage is a cached task: re-running on an unchanged
+campaign re-uses all of them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from prefect import flow, get_run_logger
+from prefect.task_runners import ThreadPoolTaskRunner
+
+import fivecal
+from flows.ingest import ingest_campaign
+from flows.measure import measure_campaign
+from tasks.calibration_steps import capture_task, compensate_task, formulations_task, identify_task, report_task
+from tasks.compensation import compensation_table, desired_tip_poses
+from tasks.detector_comparison import intrinsics_from_table
+from tasks.error_model import ErrorModel
+from tasks.identification.measurements import assemble_measurements
+from tasks.identification.pige_identification import null_space_sentences
+from tasks.ingest import load_campaign_metadata
+from tasks.report import ReportData
+from tasks.results_lake import read_table, write_partition
+from tasks.verification import true_errors, vbm_errors, verification_table
+from tasks.verification_capture import is_simulated
+from tasks.vision import content_key, expected_rotations, nominal_machine, plates_by_camera
+from tasks.vision_steps import detect_chunk, poses
+
+VALIDATION_CAMERA = "camera1"
+
+
+def _read_optional(table: str, root: Path | None, campaign_id: str) -> pd.DataFrame | None:
+    try:
+        return read_table(table, root, campaign_id)
+    except (FileNotFoundError, OSError, ValueError):
+        return None
+
+
+def _measure_capture(folder: Path, results_root: str | None, cameras: dict, detector: str) -> pd.DataFrame:
+    """Ingest the capture folder, detect its grids and estimate its poses with the campaign's intrinsics."""
+    ingest_campaign(str(folder), results_root)
+    metadata = load_campaign_metadata(folder)
+    root = None if results_root is None else Path(results_root)
+    images = read_table("images", root, metadata["campaign_id"])
+    images["rotation_deg"] = expected_rotations(metadata, images)
+    plates = plates_by_camera(metadata)
+    ok = images[images["status"] == "ok"]
+    dots, detections = detect_chunk(folder, ok, plates, detector)
+    table = poses(dots, detections, cameras, plates)
+    return images.merge(table.drop(columns=["camera"], errors="ignore"), on="image_id", suffixes=("", "_pose"))
+
+
+@flow(name="calibrate-campaign", task_runner=ThreadPoolTaskRunner(max_workers=os.cpu_count() or 2))
+def calibrate_campaign(campaign: str, results_root: str | None = None, detector: str = "rrht",
+                       reports_root: str = "reports", run: str | None = None) -> dict[str, Any]:
+    """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path."""
+    logger = get_run_logger()
+    folder = Path(campaign).resolve()
+    root = None if results_root is None else Path(results_root)
+    measure_campaign(str(folder), results_root, detector)
+    metadata = load_campaign_metadata(folder)
+    campaign_id = metadata["campaign_id"]
+    machine = nominal_machine(metadata)
+    images = read_table("images", root, campaign_id)
+    pose_table = read_table("poses", root, campaign_id)
+    calibration = read_table("camera_calibration", root, campaign_id)
+    cameras = intrinsics_from_table(calibration, metadata)
+    simulated = is_simulated(folder)
+    # the truth is read only to express it in the fit's gauge and to report errors against it
+    truth = (ErrorModel.from_dict(json.loads((folder / "truth" / "truth.json").read_text())["error_model"])
+             if simulated else None)
+
+    measurements = assemble_measurements(images, pose_table)
+    logger.info(f"identifying: {len(measurements)} poses ({(measurements.table.stage == 'pige').sum()} five-axis)")
+    ident = identify_task.submit(machine, measurements, truth)
+    result = ident.result()
+    fit = result.pige.fit
+    logger.info(f"PIGE fit: {fit.iterations} LM iterations, σ² = {fit.sigma2:.3g}, "
+                f"{int(fit.identifiable.sum())}/{fit.identifiable.size} parameters identifiable")
+
+    validation = measurements.stage("validation", camera=VALIDATION_CAMERA)
+    ids = validation.table.image_id.tolist()
+    commands = validation.commands
+    comp = compensate_task.submit(machine, result.model, commands)
+    compensated = comp.result()
+    desired = desired_tip_poses(machine, commands)
+    parts = {("before", "vbm"): vbm_errors(machine, result.model, desired, commands, validation.T, validation.cov,
+                                           VALIDATION_CAMERA)}
+    cached = {"identify": ident.state.name == "Cached", "compensate": comp.state.name == "Cached"}
+    if simulated:
+        logger.info(f"simulator renders the verification capture of {len(ids)} compensated poses")
+        capture_id = "compensated-" + content_key(compensated.round(9).tolist())[:12]
+        cap = capture_task.submit(folder, folder / "captures" / capture_id, ids, compensated)
+        capture_folder = Path(cap.result())
+        cached["capture"] = cap.state.name == "Cached"
+        after = _measure_capture(capture_folder, results_root, cameras, detector)
+        after = after[after["status_pose"] == "ok"] if "status_pose" in after else after
+        from tasks.poses import covariances_from_table, poses_from_table
+
+        keep = [f"{i}_v" in set(after.image_id) for i in ids]
+        after = after.set_index("image_id").loc[[f"{i}_v" for i, k in zip(ids, keep, strict=True) if k]]
+        sel = np.flatnonzero(keep)
+        parts[("after", "vbm")] = vbm_errors(machine, result.model, desired[sel], compensated[sel],
+                                             poses_from_table(after), covariances_from_table(after), VALIDATION_CAMERA)
+        parts[("before", "truth")] = true_errors(machine, truth, desired, commands)
+        parts[("after", "truth")] = true_errors(machine, truth, desired, compensated)
+        verification = pd.concat([verification_table([ids[i] for i in sel] if key == ("after", "vbm") else ids,
+                                                      {key: df}) for key, df in parts.items()], ignore_index=True)
+    else:
+        logger.warning("not a simulated campaign: the after-compensation capture must come from the lab")
+        verification = verification_table(ids, parts)
+    formulations = formulations_task.submit(machine, result.model,
+                                            measurements.stage("pige").commands).result()
+
+    provenance = {"fivecal_version": fivecal.__version__, "detector": detector, "campaign": str(folder),
+                  "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
+                  "identification_code": "identification-1"}
+    pdge_table = result.pdge.table
+    tables = {}
+    for name, df in (("pdge", pdge_table), ("pige", result.pige_table()),
+                     ("compensation", compensation_table(ids, commands, compensated)),
+                     ("verification", verification), ("formulations", formulations)):
+        tables[name] = str(write_partition(name, campaign_id, df, provenance, root))
+
+    run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    out_dir = Path(reports_root) / campaign_id / run
+    data = ReportData(campaign_id=campaign_id, run=run, pdge=pdge_table, pige=result.pige_table(),
+                      verification=verification, camera_calibration=calibration,
+                      detector_comparison=_read_optional("detector_comparison", root, campaign_id),
+                      formulations=formulations, identifiability=null_space_sentences(result.pige.specs, fit),
+                      provenance={**provenance, "tables": tables}, simulated=simulated)
+    paths = report_task(out_dir, data)
+    summary_rows = verification.groupby(["phase", "source"])[["position_um", "orientation_arcsec"]].mean()
+    logger.info(f"verification means:\n{summary_rows.round(2).to_string()}")
+    return {"campaign_id": campaign_id, "report": str(paths["html"]), "markdown": str(paths["markdown"]),
+            "tables": tables, "cached": cached, "sigma2": fit.sigma2,
+            "verification_means": summary_rows.round(3).reset_index().to_dict("records")}

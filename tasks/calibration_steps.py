@@ -1,0 +1,81 @@
+"""Prefect task wrappers of the calibration stages (identification, compensation, verification,
+formulation comparison, report).
+
+Cache keys are the content of the inputs plus IDENTIFICATION_CODE_VERSION (bump it when the
+science of these stages changes: Prefect's TASK_SOURCE would only see these thin wrappers).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from tasks.compensation import compensate
+from tasks.error_model import ErrorModel
+from tasks.formulations import compare_formulations
+from tasks.identification.measurements import Measurements, assemble_measurements
+from tasks.identification.pige_identification import CalibrationResult, calibrate
+from tasks.machine import Machine
+from tasks.verification_capture import simulate_capture
+from tasks.vision import content_key
+
+IDENTIFICATION_CODE_VERSION = "identification-1"
+
+
+def _key(prefix: str, *parts) -> str:
+    return f"{prefix}-" + content_key(IDENTIFICATION_CODE_VERSION, *parts)
+
+
+def _truth_key(truth: ErrorModel | None):
+    return None if truth is None else truth.to_dict()
+
+
+@task(name="assemble-measurements", cache_policy=NO_CACHE, persist_result=False)
+def measurements_task(images: pd.DataFrame, poses: pd.DataFrame) -> Measurements:
+    return assemble_measurements(images, poses)
+
+
+@task(name="identify", persist_result=True,
+      cache_key_fn=lambda c, p: _key("identify", p["measurements"].table,
+                                     pd.DataFrame(p["measurements"].T.reshape(len(p["measurements"]), -1)),
+                                     p["machine"].source, _truth_key(p["truth"]),
+                                     None if p["base"] is None else p["base"].to_dict()))
+def identify_task(machine: Machine, measurements: Measurements, truth: ErrorModel | None,
+                  base: ErrorModel | None = None) -> CalibrationResult:
+    """PDGE extraction (eqs. 13–19) and PIGE identification (eq. 22)."""
+    return calibrate(machine, measurements, truth, base=base)
+
+
+@task(name="compensate", persist_result=True,
+      cache_key_fn=lambda c, p: _key("compensate", p["model"].to_dict(), p["commands"].tolist(),
+                                     p["machine"].source))
+def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray) -> np.ndarray:
+    """Compensated commands of the validation poses by inverse kinematics of the identified model."""
+    return compensate(machine, model, commands)
+
+
+@task(name="simulate-verification-capture", persist_result=True,
+      cache_key_fn=lambda c, p: _key("capture", str(p["campaign_folder"]), str(p["out_folder"]),
+                                     list(p["image_ids"]), np.round(p["commands"], 9).tolist()))
+def capture_task(campaign_folder: Path, out_folder: Path, image_ids: list[str], commands: np.ndarray) -> str:
+    """The simulator renders the follow-up capture at the compensated commands."""
+    return str(simulate_capture(campaign_folder, out_folder, image_ids, commands))
+
+
+@task(name="formulation-comparison", persist_result=True,
+      cache_key_fn=lambda c, p: _key("formulations", p["model"].to_dict(), p["commands"].tolist()))
+def formulations_task(machine: Machine, model: ErrorModel, commands: np.ndarray) -> pd.DataFrame:
+    """Table 5: local PoE vs Denavit–Hartenberg vs global PoE on the identified model."""
+    return compare_formulations(machine, model, commands)
+
+
+@task(name="write-report", cache_policy=NO_CACHE, persist_result=False)
+def report_task(out_dir: Path, data: Any) -> dict[str, Path]:
+    from tasks.report import write_report
+
+    return write_report(out_dir, data)

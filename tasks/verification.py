@@ -1,0 +1,66 @@
+"""Tip errors before and after compensation, as the vision system measures them and as they are.
+
+As the VBM measures: the tip pose in the workpiece frame follows from the measured plate pose
+T_cam_plate and the tip's pose in the camera frame (the identified hand–eye relation):
+T_plate_tip = T_cam_plate⁻¹ · T_cam_tip. The error is against the desired (nominal) tip pose.
+Its measurement noise is propagated from the pose covariance: a plate-frame error (v, ω) moves the
+tip by −(v + ω × p_tip), so the noise floor of a pose is sqrt(tr Σ_p) for position and
+sqrt(tr Σ_ω) for orientation (the expected error norm if the machine were perfect).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from tasks import se3
+from tasks.error_model import ErrorModel
+from tasks.identification.pige_identification import tip_pose_error
+from tasks.kinematics import forward
+from tasks.machine import Machine
+
+RAD_TO_ARCSEC = 206264.80624709636
+
+
+def measured_tip_poses(machine: Machine, model: ErrorModel, commands: np.ndarray, T_cam_plate: np.ndarray,
+                       camera: str) -> np.ndarray:
+    """(N, 4, 4) tip poses in the plate (workpiece) frame from measured plate poses (mm)."""
+    cam_tip = forward(machine, commands, model).relative(machine.tip, camera)
+    return se3.inverse(T_cam_plate) @ cam_tip
+
+
+def noise_floor(tip_in_plate: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Expected tip error norms (µm, arcsec) from the pose covariances alone: (N,), (N,)."""
+    p = tip_in_plate[:, :3, 3]
+    A = np.concatenate([np.broadcast_to(np.eye(3), (len(p), 3, 3)), -se3.skew(p)], axis=2)  # v + ω×p = v − p̂ ω
+    cov_p = A @ cov @ np.swapaxes(A, 1, 2)
+    pos = np.sqrt(np.trace(cov_p, axis1=1, axis2=2)) * 1e3
+    ori = np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2)) * RAD_TO_ARCSEC
+    return pos, ori
+
+
+def vbm_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray,
+               T_cam_plate: np.ndarray, cov: np.ndarray, camera: str) -> pd.DataFrame:
+    """Tip errors as measured (rows of :func:`tip_pose_error` plus noise_floor_* columns)."""
+    tips = measured_tip_poses(machine, model, commands, T_cam_plate, camera)
+    out = tip_pose_error(tips, desired)
+    out["noise_floor_position_um"], out["noise_floor_orientation_arcsec"] = noise_floor(tips, cov)
+    return out
+
+
+def true_errors(machine: Machine, truth: ErrorModel, desired: np.ndarray, commands: np.ndarray) -> pd.DataFrame:
+    """Tip errors of the simulator's true machine at ``commands`` against ``desired``."""
+    return tip_pose_error(forward(machine, commands, truth).tool_in_workpiece(), desired)
+
+
+def verification_table(image_ids, parts: dict[tuple[str, str], pd.DataFrame]) -> pd.DataFrame:
+    """Stack {(phase, source): errors} into the ``verification`` lake table."""
+    frames = []
+    for (phase, source), df in parts.items():
+        f = df.copy()
+        f.insert(0, "source", source)
+        f.insert(0, "phase", phase)
+        f.insert(0, "pose", np.arange(len(f)))
+        f.insert(0, "image_id", list(image_ids))
+        frames.append(f)
+    return pd.concat(frames, ignore_index=True)

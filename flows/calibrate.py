@@ -14,7 +14,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 from prefect import flow, get_run_logger
 from prefect.task_runners import ThreadPoolTaskRunner
@@ -22,7 +21,14 @@ from prefect.task_runners import ThreadPoolTaskRunner
 import fivecal
 from flows.ingest import ingest_campaign
 from flows.measure import measure_campaign
-from tasks.calibration_steps import capture_task, compensate_task, formulations_task, identify_task, report_task
+from tasks.calibration_steps import (
+    IDENTIFICATION_CODE_VERSION,
+    capture_task,
+    compensate_task,
+    formulations_task,
+    identify_task,
+    report_task,
+)
 from tasks.compensation import compensation_table, desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
 from tasks.error_model import ErrorModel
@@ -31,7 +37,7 @@ from tasks.identification.pige_identification import null_space_sentences
 from tasks.ingest import load_campaign_metadata
 from tasks.report import ReportData
 from tasks.results_lake import read_table, write_partition
-from tasks.verification import true_errors, vbm_errors, verification_table
+from tasks.verification import capture_errors, true_errors, vbm_errors, verification_table
 from tasks.verification_capture import is_simulated
 from tasks.vision import content_key, expected_rotations, nominal_machine, plates_by_camera
 from tasks.vision_steps import detect_chunk, poses
@@ -47,7 +53,8 @@ def _read_optional(table: str, root: Path | None, campaign_id: str) -> pd.DataFr
 
 
 def _measure_capture(folder: Path, results_root: str | None, cameras: dict, detector: str) -> pd.DataFrame:
-    """Ingest the capture folder, detect its grids and estimate its poses with the campaign's intrinsics."""
+    """Ingest the capture folder, detect its grids and estimate its poses with the campaign's intrinsics:
+    the capture's poses table."""
     ingest_campaign(str(folder), results_root)
     metadata = load_campaign_metadata(folder)
     root = None if results_root is None else Path(results_root)
@@ -57,7 +64,7 @@ def _measure_capture(folder: Path, results_root: str | None, cameras: dict, dete
     ok = images[images["status"] == "ok"]
     dots, detections = detect_chunk(folder, ok, plates, detector)
     table = poses(dots, detections, cameras, plates)
-    return images.merge(table.drop(columns=["camera"], errors="ignore"), on="image_id", suffixes=("", "_pose"))
+    return table
 
 
 @flow(name="calibrate-campaign", task_runner=ThreadPoolTaskRunner(max_workers=os.cpu_count() or 2))
@@ -94,8 +101,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     comp = compensate_task.submit(machine, result.model, commands)
     compensated = comp.result()
     desired = desired_tip_poses(machine, commands)
-    parts = {("before", "vbm"): vbm_errors(machine, result.model, desired, commands, validation.T, validation.cov,
-                                           VALIDATION_CAMERA)}
+    parts = {("before", "vbm"): (ids, vbm_errors(machine, result.model, desired, commands, validation.T,
+                                                 validation.cov, VALIDATION_CAMERA))}
     cached = {"identify": ident.state.name == "Cached", "compensate": comp.state.name == "Cached"}
     if simulated:
         logger.info(f"simulator renders the verification capture of {len(ids)} compensated poses")
@@ -104,37 +111,29 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
         capture_folder = Path(cap.result())
         cached["capture"] = cap.state.name == "Cached"
         after = _measure_capture(capture_folder, results_root, cameras, detector)
-        after = after[after["status_pose"] == "ok"] if "status_pose" in after else after
-        from tasks.poses import covariances_from_table, poses_from_table
-
-        keep = [f"{i}_v" in set(after.image_id) for i in ids]
-        after = after.set_index("image_id").loc[[f"{i}_v" for i, k in zip(ids, keep, strict=True) if k]]
-        sel = np.flatnonzero(keep)
-        parts[("after", "vbm")] = vbm_errors(machine, result.model, desired[sel], compensated[sel],
-                                             poses_from_table(after), covariances_from_table(after), VALIDATION_CAMERA)
-        parts[("before", "truth")] = true_errors(machine, truth, desired, commands)
-        parts[("after", "truth")] = true_errors(machine, truth, desired, compensated)
-        verification = pd.concat([verification_table([ids[i] for i in sel] if key == ("after", "vbm") else ids,
-                                                      {key: df}) for key, df in parts.items()], ignore_index=True)
+        parts[("after", "vbm")] = capture_errors(machine, result.model, desired, compensated, ids, after,
+                                                 VALIDATION_CAMERA)
+        parts[("before", "truth")] = (ids, true_errors(machine, truth, desired, commands))
+        parts[("after", "truth")] = (ids, true_errors(machine, truth, desired, compensated))
     else:
         logger.warning("not a simulated campaign: the after-compensation capture must come from the lab")
-        verification = verification_table(ids, parts)
+    verification = verification_table(parts)
     formulations = formulations_task.submit(machine, result.model,
                                             measurements.stage("pige").commands).result()
 
     provenance = {"fivecal_version": fivecal.__version__, "detector": detector, "campaign": str(folder),
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
-                  "identification_code": "identification-1"}
-    pdge_table = result.pdge.table
+                  "identification_code": IDENTIFICATION_CODE_VERSION}
+    pdge_table, pige_table = result.pdge.table, result.pige_table()
     tables = {}
-    for name, df in (("pdge", pdge_table), ("pige", result.pige_table()),
+    for name, df in (("pdge", pdge_table), ("pige", pige_table),
                      ("compensation", compensation_table(ids, commands, compensated)),
                      ("verification", verification), ("formulations", formulations)):
         tables[name] = str(write_partition(name, campaign_id, df, provenance, root))
 
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out_dir = Path(reports_root) / campaign_id / run
-    data = ReportData(campaign_id=campaign_id, run=run, pdge=pdge_table, pige=result.pige_table(),
+    data = ReportData(campaign_id=campaign_id, run=run, pdge=pdge_table, pige=pige_table,
                       verification=verification, camera_calibration=calibration,
                       detector_comparison=_read_optional("detector_comparison", root, campaign_id),
                       formulations=formulations, identifiability=null_space_sentences(result.pige.specs, fit),

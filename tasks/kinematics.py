@@ -22,10 +22,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 
 from tasks import se3
 from tasks.context import PoseContext
-from tasks.error_model import ErrorModel, pige_joint_transforms
+from tasks.error_model import ARCSEC, UM, ErrorModel, pige_joint_transforms
 from tasks.machine import AXIS_ORDER, Machine
 
 
@@ -123,3 +124,17 @@ def position_orientation_error(actual: np.ndarray, nominal: np.ndarray) -> tuple
     dt = np.linalg.norm(actual[:, :3, 3] - nominal[:, :3, 3], axis=1)
     dR = se3.rotation_angle(np.swapaxes(actual[:, :3, :3], 1, 2) @ nominal[:, :3, :3])
     return dt, dR
+
+
+def tip_pose_error(measured: np.ndarray, desired: np.ndarray) -> pd.DataFrame:
+    """Tip error per pose: position (µm), orientation (arcsec) and X/Y/Z components, workpiece frame.
+
+    measured, desired: (N, 4, 4) tip poses in the workpiece frame (mm). Components: t_a − t_c (µm)
+    and the rotation vector of R_c⁻¹ R_a (arcsec). Returns position_um,
+    orientation_arcsec, dx_um, dy_um, dz_um, rx_arcsec, ry_arcsec, rz_arcsec.
+    """
+    d = (measured[:, :3, 3] - desired[:, :3, 3]) / UM
+    r = se3.log_so3(np.swapaxes(desired[:, :3, :3], 1, 2) @ measured[:, :3, :3]) / ARCSEC
+    return pd.DataFrame({"position_um": np.linalg.norm(d, axis=1), "orientation_arcsec": np.linalg.norm(r, axis=1),
+                         "dx_um": d[:, 0], "dy_um": d[:, 1], "dz_um": d[:, 2],
+                         "rx_arcsec": r[:, 0], "ry_arcsec": r[:, 1], "rz_arcsec": r[:, 2]})

@@ -10,10 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from tasks import se3
 from tasks.context import PoseContext
 from tasks.error_model import ARCSEC, UM, ErrorModel
-from tasks.kinematics import forward, position_orientation_error
+from tasks.kinematics import forward, tip_pose_error
 from tasks.machine import AXIS_ORDER, Machine
 
 # The seed's published figures (§5.2): before and after compensation.
@@ -36,15 +35,7 @@ def tip_errors(machine: Machine, commands: np.ndarray, errors: ErrorModel,
     and rx/ry/rz_arcsec (rotation vector of R_c⁻¹ R_a).
     """
     actual = forward(machine, commands, errors, context).tool_in_workpiece()
-    nominal = forward(machine, commands).tool_in_workpiece()
-    dt, dR = position_orientation_error(actual, nominal)
-    d = (actual[:, :3, 3] - nominal[:, :3, 3]) / UM
-    r = se3.log_so3(np.swapaxes(nominal[:, :3, :3], 1, 2) @ actual[:, :3, :3]) / ARCSEC
-    return pd.DataFrame({
-        "position_um": dt / UM, "orientation_arcsec": dR / ARCSEC,
-        "dx_um": d[:, 0], "dy_um": d[:, 1], "dz_um": d[:, 2],
-        "rx_arcsec": r[:, 0], "ry_arcsec": r[:, 1], "rz_arcsec": r[:, 2],
-    })
+    return tip_pose_error(actual, forward(machine, commands).tool_in_workpiece())
 
 
 def summarise(err: pd.DataFrame) -> dict[str, float]:

@@ -14,12 +14,10 @@ import numpy as np
 import pandas as pd
 
 from tasks import se3
-from tasks.error_model import ErrorModel
-from tasks.identification.pige_identification import tip_pose_error
-from tasks.kinematics import forward
+from tasks.error_model import ARCSEC, ErrorModel
+from tasks.kinematics import forward, tip_pose_error
 from tasks.machine import Machine
-
-RAD_TO_ARCSEC = 206264.80624709636
+from tasks.poses import covariances_from_table, poses_from_table
 
 
 def measured_tip_poses(machine: Machine, model: ErrorModel, commands: np.ndarray, T_cam_plate: np.ndarray,
@@ -35,7 +33,7 @@ def noise_floor(tip_in_plate: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, 
     A = np.concatenate([np.broadcast_to(np.eye(3), (len(p), 3, 3)), -se3.skew(p)], axis=2)  # v + ω×p = v − p̂ ω
     cov_p = A @ cov @ np.swapaxes(A, 1, 2)
     pos = np.sqrt(np.trace(cov_p, axis1=1, axis2=2)) * 1e3
-    ori = np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2)) * RAD_TO_ARCSEC
+    ori = np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2)) / ARCSEC
     return pos, ori
 
 
@@ -48,15 +46,29 @@ def vbm_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, command
     return out
 
 
+def capture_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray, image_ids,
+                   capture: pd.DataFrame, camera: str, suffix: str = "_v") -> tuple[list[str], pd.DataFrame]:
+    """VBM tip errors of a follow-up capture whose image ``<id><suffix>`` re-measures pose ``id``.
+
+    capture: poses rows (image_id, status, T.., cov..). Poses whose capture has no ok pose are left
+    out. Returns (the validation image_ids kept, their errors)."""
+    ok = capture[capture["status"] == "ok"].set_index("image_id")
+    keep = np.array([f"{i}{suffix}" in ok.index for i in image_ids], dtype=bool)
+    kept = [i for i, k in zip(image_ids, keep, strict=True) if k]
+    rows = ok.loc[[f"{i}{suffix}" for i in kept]]
+    return kept, vbm_errors(machine, model, desired[keep], commands[keep], poses_from_table(rows),
+                            covariances_from_table(rows), camera)
+
+
 def true_errors(machine: Machine, truth: ErrorModel, desired: np.ndarray, commands: np.ndarray) -> pd.DataFrame:
     """Tip errors of the simulator's true machine at ``commands`` against ``desired``."""
     return tip_pose_error(forward(machine, commands, truth).tool_in_workpiece(), desired)
 
 
-def verification_table(image_ids, parts: dict[tuple[str, str], pd.DataFrame]) -> pd.DataFrame:
-    """Stack {(phase, source): errors} into the ``verification`` lake table."""
+def verification_table(parts: dict[tuple[str, str], tuple[list[str], pd.DataFrame]]) -> pd.DataFrame:
+    """Stack {(phase, source): (validation image_ids, errors)} into the ``verification`` lake table."""
     frames = []
-    for (phase, source), df in parts.items():
+    for (phase, source), (image_ids, df) in parts.items():
         f = df.copy()
         f.insert(0, "source", source)
         f.insert(0, "phase", phase)

@@ -18,6 +18,9 @@ from pathlib import Path
 
 import pytest
 
+from tasks.machine import load_machine
+from tasks.prototype_errors import load_prototype_errors
+
 TINY_CAMPAIGN_ID = "tiny"
 TINY_SEED = 0
 
@@ -80,3 +83,15 @@ def prefect_harness(tmp_path_factory) -> Iterator[Path]:
             os.environ.pop("PREFECT_LOCAL_STORAGE_PATH", None)
         else:
             os.environ["PREFECT_LOCAL_STORAGE_PATH"] = previous
+
+
+@pytest.fixture(scope="session")
+def machine():
+    """The prototype machine description (tasks/machines/prototype.json)."""
+    return load_machine("prototype")
+
+
+@pytest.fixture(scope="session")
+def errors():
+    """The prototype's frozen true errors."""
+    return load_prototype_errors()

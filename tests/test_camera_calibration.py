@@ -40,11 +40,6 @@ SEED = 0
 CAMERAS = ("camera1", "camera2")
 
 
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("prototype")
-
-
 def nominal(machine, name):
     c = machine.cameras[name]
     spec = {"width_px": c.width_px, "height_px": c.height_px, "pixel_size_mm": c.pixel_size_mm,

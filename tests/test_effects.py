@@ -7,14 +7,8 @@ from tasks.context import PoseContext
 from tasks.effects import EFFECTS, catalogue_text, parse_effect
 from tasks.error_model import ARCSEC, UM, ErrorModel
 from tasks.kinematics import forward
-from tasks.machine import load_machine
 from tasks.render import true_dot_centres
 from tasks.simulate import camera_for_image
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("prototype")
 
 
 def tip_shift_um(machine, spec, cmds, context=None):

@@ -27,18 +27,7 @@ from tasks.formulations import (
     local_poe_tool_in_workpiece,
 )
 from tasks.kinematics import forward, position_orientation_error
-from tasks.machine import load_machine, machine_from_dict
-from tasks.prototype_errors import load_prototype_errors
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("prototype")
-
-
-@pytest.fixture(scope="module")
-def errors():
-    return load_prototype_errors()
+from tasks.machine import machine_from_dict
 
 
 def random_commands(n, seed, machine=None):

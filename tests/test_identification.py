@@ -15,14 +15,9 @@ from tasks.identification.parameters import apply_parameters, default_parameters
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS, extract_pdges
 from tasks.identification.pige_identification import identify_pige, synthetic_measurements
 from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER, load_machine
+from tasks.machine import AXIS_ORDER
 from tasks.prototype_errors import load_prototype_errors
 from tasks.verification import noise_floor
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("prototype")
 
 
 def _measurements(machine, plan: pd.DataFrame) -> Measurements:

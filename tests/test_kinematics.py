@@ -1,7 +1,6 @@
 """Local PoE forward kinematics against an independent construction; IK round trips."""
 
 import numpy as np
-import pytest
 from scipy.spatial.transform import Rotation
 
 from tasks.context import PoseContext, approach_directions
@@ -9,18 +8,8 @@ from tasks.effects import parse_effect
 from tasks.error_model import ARCSEC, PIGE_SCREWS, UM
 from tasks.inverse_kinematics import inverse
 from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER, load_machine
+from tasks.machine import AXIS_ORDER
 from tasks.prototype_errors import load_prototype_errors
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("prototype")
-
-
-@pytest.fixture(scope="module")
-def errors():
-    return load_prototype_errors()
 
 
 def homogeneous(R=None, p=(0.0, 0.0, 0.0)):

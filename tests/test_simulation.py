@@ -5,15 +5,9 @@ import pytest
 
 from tasks.campaign_plan import CampaignPlan, five_axis_poses, plan_campaign
 from tasks.effects import parse_effect
-from tasks.machine import load_machine
 from tasks.prototype_errors import load_prototype_errors
 from tasks.simulate import encode_png, manifest_from_plan, render_image, simulate_truth
 from tasks.truth_stats import SEED_BEFORE, summarise, tip_errors
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return load_machine("prototype")
 
 
 def test_prototype_reproduces_the_seeds_before_compensation_errors(machine):

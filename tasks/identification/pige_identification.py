@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from tasks import se3
 from tasks.error_model import ErrorModel
 from tasks.identification.levenberg_marquardt import FitResult, levenberg_marquardt
 from tasks.identification.measurements import Measurements
@@ -155,14 +154,3 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
         truth_fit = identify_pige(machine, truth_base, clean.stage(IDENTIFICATION_STAGE), specs)
     return CalibrationResult(pdge, fit, truth_fit, truth)
 
-
-def tip_pose_error(measured: np.ndarray, desired: np.ndarray) -> pd.DataFrame:
-    """Tip error per pose: position (µm), orientation (arcsec) and X/Y/Z components, workpiece frame.
-
-    measured, desired: (N, 4, 4) tip poses in the workpiece frame. Components: t_a − t_c (µm) and
-    the rotation vector of R_c⁻¹ R_a (arcsec)."""
-    d = (measured[:, :3, 3] - desired[:, :3, 3]) * 1e3
-    r = se3.log_so3(np.swapaxes(desired[:, :3, :3], 1, 2) @ measured[:, :3, :3]) * 206264.80624709636
-    return pd.DataFrame({"position_um": np.linalg.norm(d, axis=1), "orientation_arcsec": np.linalg.norm(r, axis=1),
-                         "dx_um": d[:, 0], "dy_um": d[:, 1], "dz_um": d[:, 2],
-                         "rx_arcsec": r[:, 0], "ry_arcsec": r[:, 1], "rz_arcsec": r[:, 2]})

@@ -1,7 +1,11 @@
 """Geometric errors of the machine: PIGEs (Table 2, eqs. 9–11) and PDGEs (Table 1, eq. 8).
 
-Every error is an error screw in the local frame of the joint it belongs to, applied before the
-ideal joint motion as in eq. 12: ``link_offset · e^{ξ_D(θ)} · e^{ξ_I} · e^{ξ θ}``.
+Every error is an error screw in the local frame of the joint it belongs to. The PDGE error
+motion is applied before the joint motion; the PIGEs move the joint's axis line (eq. 12):
+``link_offset · e^{ξ_D(θ)} · E_I · e^{ξ θ} · E_I⁻¹`` with ``E_I = e^{ξ_I}``, so a PIGE acts in
+proportion to the joint's travel and is zero at home (what a sweep refers to home cannot hide it).
+A rotation PIGE tilts the axis (for a linear axis: its direction of motion, i.e. squareness); a
+translation PIGE of a rotary axis shifts its line.
 
 PIGE names follow the paper's symbols (ASCII spelling) and each is defined by its unit screw in
 the joint frame. The paper leaves the axis of each α/β open; we take α/β to be the rotation that
@@ -82,7 +86,7 @@ def pige_unit(name: str) -> str:
 
 
 def pige_joint_transforms(pige: dict[str, float]) -> dict[str, np.ndarray]:
-    """Constant PIGE transforms e^{ξ_I} per joint (eqs. 9–11), values in mm / rad.
+    """Constant PIGE transforms E_I = e^{ξ_I} per joint (eqs. 9–11) that move its axis, values in mm / rad.
 
     Returns {joint: (4, 4)} for joints that have at least one PIGE. Cached (they are constant):
     the returned arrays are shared and must not be modified.

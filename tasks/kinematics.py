@@ -2,10 +2,13 @@
 
 Joint i moves its link frame relative to the previous one by
 
-    g_{i-1,i}(θ_i) = e^{t̂_{i-1,i}} · e^{ξ̂_D(θ_i)} · e^{ξ̂_I} · e^{ξ̂_i θ_i}          (eq. 12)
+    g_{i-1,i}(θ_i) = e^{t̂_{i-1,i}} · e^{ξ̂_D(θ_i)} · e^{(Ad_{E_I} ξ_i)^ θ_i}              (eq. 12)
 
-with the fixed home offset t_{i-1,i}, the PDGE error motion ξ_D (eq. 8), the PIGE transform
-ξ_I (eqs. 9–11) and the ideal unit twist ξ_i in the joint's own frame. Chains start at the
+with the fixed home offset t_{i-1,i}, the PDGE error motion ξ_D (eq. 8) and the ideal unit twist
+ξ_i in the joint's own frame, whose axis the PIGEs move: E_I = e^{ξ̂_I} (eqs. 9–11) tilts or shifts
+the axis line, e^{(Ad_E ξ)^ θ} = E · e^{ξ̂ θ} · E⁻¹. A PIGE is position independent in the
+paper's sense (a fixed error of the axis line) and changes nothing at the joint's zero: the
+errors present at home belong to the PDGE's value there. Chains start at the
 base; attachments (cameras, plates, tip) ride on one link. Everything is batched over N poses.
 
 SYNOPSIS
@@ -42,6 +45,13 @@ def ideal_joint_motion(machine: Machine, axis: str, theta: np.ndarray) -> np.nda
         R = np.eye(3) + s * K + (1.0 - c) * (K @ K)
         return se3.from_rotation_translation(R, np.zeros((theta.shape[0], 3)))
     return se3.translation(theta[:, None] * d)
+
+
+def pige_moved_axis(E: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """Joint motion about the axis line moved by the PIGE transform E (4, 4): E · J · E⁻¹, (N, 4, 4).
+
+    J: ideal motions e^{ξ̂θ} (N, 4, 4) in the joint's frame. Identity where J is (θ = 0)."""
+    return E @ J @ se3.inverse(E)
 
 
 @dataclass
@@ -101,7 +111,7 @@ def forward(
             # joint factor of eq. 12, built right to left: e^{ξ_D} e^{ξ_I} e^{ξθ}
             J = ideal_joint_motion(machine, axis, q[:, AXIS_ORDER.index(axis)])
             if axis in pige:
-                J = pige[axis] @ J
+                J = pige_moved_axis(pige[axis], J)
             if axis in joint_err:
                 J = se3.error_motion(joint_err[axis]) @ J
             # the home offset e^{t̂} is a pure translation: left-multiplying adds it to the translation

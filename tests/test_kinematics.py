@@ -32,17 +32,18 @@ def independent_chain(machine, command, errors):
             e = errors.pdge[axis](np.array([pos]))[0]
             R = Rotation.from_euler("XYZ", e[3:]).as_matrix()  # intrinsic x, then y, then z
             T = T @ homogeneous(R, e[:3])
-        for name, (j, k) in PIGE_SCREWS.items():  # eqs. 9–11 in their order
+        E = np.eye(4)  # the PIGEs move the axis line (eqs. 9–11 in their order): motion E · J · E⁻¹
+        for name, (j, k) in PIGE_SCREWS.items():
             if j != axis or name not in errors.pige:
                 continue
             v = errors.pige[name]
             if k < 3:
-                T = T @ homogeneous(p=np.eye(3)[k] * v)
+                E = E @ homogeneous(p=np.eye(3)[k] * v)
             else:
-                T = T @ homogeneous(Rotation.from_rotvec(np.eye(3)[k - 3] * v).as_matrix())
+                E = E @ homogeneous(Rotation.from_rotvec(np.eye(3)[k - 3] * v).as_matrix())
         d = np.asarray(ax.direction, float)
         motion = homogeneous(Rotation.from_rotvec(d * pos).as_matrix()) if ax.is_rotary else homogeneous(p=d * pos)
-        return T @ motion, home
+        return T @ E @ motion @ np.linalg.inv(E), home
 
     def chain_pose(chain, link):
         T, prev = np.eye(4), np.zeros(3)

@@ -1,0 +1,364 @@
+"""Drift of the identified errors across campaigns, and whether the machine needs recompensation.
+
+Science only (no Prefect). SYNOPSIS::
+
+    from tasks.drift import DriftTolerance, drift_table, verification_summary, verdict
+    from tasks.results_lake import read_table
+    drift = drift_table(read_table("pige"), read_table("pdge"), read_table("images"), DriftTolerance())
+    words = verdict(drift, verification_summary(read_table("verification")), DriftTolerance())
+
+What is compared: every campaign's quantities against the same quantities of a **reference
+campaign** (by default the earliest by capture time; in a lab, the campaign whose compensation the
+machine currently runs). The quantities are
+
+- each row of the ``pige`` table (the PIGEs of Table 2 and the constant, squareness and camera-mount
+  parameters fitted with them): its value and standard uncertainty as identified, in µm or arcsec;
+  an unidentifiable parameter has no value and is not compared;
+- per axis and PDGE component (δx, δy, δz in µm; εx, εy, εz in arcsec; the ``pdge`` table's
+  measured error motion referred to home) three statistics over the sweep positions, with their
+  standard uncertainty propagated to first order from the positions' standard errors ``std_<c>``
+  (taken as independent):
+
+  ============  ==============================================  ============================================
+  statistic     value                                           standard uncertainty
+  ============  ==============================================  ============================================
+  ``mean``      ȳ = Σ yᵢ / N                                    √(Σ sᵢ²) / N
+  ``std``       s = √(Σ (yᵢ − ȳ)² / (N − 1))                    √(Σ ((yᵢ − ȳ) / ((N − 1) s))² sᵢ²)
+  ``max``       max |yᵢ| (the peak error motion)                s_k at the position k of the peak
+  ============  ==============================================  ============================================
+
+For a campaign other than the reference, Δ = value − reference value and the combined standard
+uncertainty u_c = √(u² + u_ref²). Two tests (:class:`DriftTolerance`):
+
+- **absolute**: |Δ| > the absolute tolerance of the quantity's unit (µm or arcsec);
+- **significance**: |Δ| > k·u_c (k = 2: a change that measurement noise explains with less than
+  about 5 % probability).
+
+``rule`` records which tests the change exceeds: ``abs+sig``, ``abs``, ``sig`` or ``within``
+(``abs (u unknown)`` / ``within (u unknown)`` when u_c is unknown, so the significance test cannot
+be made), ``reference`` for the reference campaign's own rows and ``unavailable`` when either value
+is missing (unidentifiable). ``flagged`` applies the tolerance's ``require`` policy: ``both``
+(default: large enough to matter *and* not explained by noise; when u_c is unknown the absolute test
+decides alone), ``abs``, ``sig`` or ``either``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+
+PDGE_COMPONENTS = {"dx_um": ("dx", "um"), "dy_um": ("dy", "um"), "dz_um": ("dz", "um"),
+                   "ex_arcsec": ("ex", "arcsec"), "ey_arcsec": ("ey", "arcsec"), "ez_arcsec": ("ez", "arcsec")}
+PDGE_STATISTICS = ("mean", "std", "max")
+MACHINE_PIGE_KINDS = ("pige", "constant", "squareness")  # the machine's geometry; "mount" is the camera's
+POLICIES = ("both", "abs", "sig", "either")
+DRIFT_COLUMNS = ("campaign_id", "time", "quantity", "kind", "table", "value", "uncertainty", "unit",
+                 "reference_campaign_id", "delta_from_reference", "combined_uncertainty", "z", "flagged", "rule")
+QUANTITY_COLUMNS = ("campaign_id", "quantity", "kind", "table", "value", "uncertainty", "unit")
+
+
+@dataclass(frozen=True)
+class DriftTolerance:
+    """When a quantity counts as drifted, and when the verification error calls for recompensation.
+
+    abs_um, abs_arcsec: absolute tolerance on |Δ| for quantities in µm and in arcsec.
+    k: coverage factor of the significance test |Δ| > k·u_c (u_c: combined standard uncertainty).
+    require: which tests must be exceeded to flag: "both" (default), "abs", "sig" or "either".
+    after_position_um, after_orientation_arcsec: the mean tip error after compensation over the
+    validation poses (VBM measurement) above which the latest campaign's compensation is not good
+    enough (the seed reached 1.80 µm and 52.9″).
+    """
+
+    abs_um: float = 5.0
+    abs_arcsec: float = 15.0
+    k: float = 2.0
+    require: str = "both"
+    after_position_um: float = 10.0
+    after_orientation_arcsec: float = 100.0
+
+    def __post_init__(self):
+        if self.require not in POLICIES:
+            raise ValueError(f"DriftTolerance.require must be one of {POLICIES}, not {self.require!r}")
+        for name in ("abs_um", "abs_arcsec", "k", "after_position_um", "after_orientation_arcsec"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"DriftTolerance.{name} must be a positive number, not {value!r}")
+
+    def absolute(self, unit: str) -> float:
+        """The absolute tolerance for ``unit`` ("um" or "arcsec")."""
+        tolerances = {"um": self.abs_um, "arcsec": self.abs_arcsec}
+        if unit not in tolerances:
+            raise ValueError(f"no absolute drift tolerance for unit {unit!r} (known: um, arcsec)")
+        return tolerances[unit]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------------------------
+# Quantities
+# --------------------------------------------------------------------------------------------
+
+
+def _require(df: pd.DataFrame, columns, table: str) -> None:
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise ValueError(f"{table} table lacks the column(s) {', '.join(missing)}")
+
+
+def pige_quantities(pige: pd.DataFrame) -> pd.DataFrame:
+    """One row per campaign and ``pige`` table row (:data:`QUANTITY_COLUMNS`): quantity = the
+    parameter's name, kind = its kind (pige, constant, squareness, mount), value and uncertainty in
+    its unit (µm or arcsec); value and uncertainty NaN where ``identifiable`` is false."""
+    if pige.empty:
+        return pd.DataFrame(columns=list(QUANTITY_COLUMNS))
+    _require(pige, ("campaign_id", "name", "kind", "unit", "value", "uncertainty", "identifiable"), "pige")
+    identifiable = pige["identifiable"].fillna(False).astype(bool).to_numpy()
+    value = pd.to_numeric(pige["value"], errors="coerce").to_numpy(dtype=float)
+    unc = pd.to_numeric(pige["uncertainty"], errors="coerce").to_numpy(dtype=float)
+    return pd.DataFrame({
+        "campaign_id": pige["campaign_id"].astype(str).to_numpy(), "quantity": pige["name"].astype(str).to_numpy(),
+        "kind": pige["kind"].astype(str).to_numpy(), "table": "pige",
+        "value": np.where(identifiable, value, np.nan), "uncertainty": np.where(identifiable, unc, np.nan),
+        "unit": pige["unit"].astype(str).to_numpy()})
+
+
+def sweep_statistics(y: np.ndarray, s: np.ndarray) -> dict[str, tuple[float, float]]:
+    """{"mean" | "std" | "max": (value, standard uncertainty)} of one PDGE component over a sweep.
+
+    y: (N,) measured error motion at the N positions (µm or arcsec); s: (N,) their standard
+    errors (same unit), taken as independent. Formulas in the module docstring; NaN values are
+    dropped; "std" needs N ≥ 2 and its uncertainty is NaN when s = 0.
+    """
+    y, s = np.asarray(y, dtype=float), np.asarray(s, dtype=float)
+    keep = np.isfinite(y)
+    y, s = y[keep], s[keep]
+    n = y.size
+    if n == 0:
+        return {name: (np.nan, np.nan) for name in PDGE_STATISTICS}
+    mean = float(y.mean())
+    u_mean = float(np.sqrt(np.sum(s**2)) / n)
+    if n >= 2:
+        dev = y - mean
+        std = float(np.sqrt(np.sum(dev**2) / (n - 1)))
+        u_std = float(np.sqrt(np.sum((dev / ((n - 1) * std)) ** 2 * s**2))) if std > 0 else np.nan
+    else:
+        std, u_std = np.nan, np.nan
+    k = int(np.argmax(np.abs(y)))
+    return {"mean": (mean, u_mean), "std": (std, u_std), "max": (float(abs(y[k])), float(s[k]))}
+
+
+def pdge_quantities(pdge: pd.DataFrame) -> pd.DataFrame:
+    """One row per campaign, axis, component and statistic (:data:`QUANTITY_COLUMNS`): quantity =
+    ``"<axis>.<component>.<statistic>"`` (e.g. ``"X.dz.max"``), kind "pdge", value and uncertainty
+    from :func:`sweep_statistics` of the measured column (e.g. ``dz_um``) and its ``std_dz_um``
+    standard errors, unit "um" or "arcsec"."""
+    if pdge.empty:
+        return pd.DataFrame(columns=list(QUANTITY_COLUMNS))
+    _require(pdge, ("campaign_id", "axis", *PDGE_COMPONENTS, *(f"std_{c}" for c in PDGE_COMPONENTS)), "pdge")
+    rows = []
+    for (campaign_id, axis), g in pdge.groupby(["campaign_id", "axis"], sort=False):
+        for column, (component, unit) in PDGE_COMPONENTS.items():
+            y = pd.to_numeric(g[column], errors="coerce").to_numpy(dtype=float)
+            s = pd.to_numeric(g[f"std_{column}"], errors="coerce").to_numpy(dtype=float)
+            for stat, (value, unc) in sweep_statistics(y, s).items():
+                rows.append({"campaign_id": str(campaign_id), "quantity": f"{axis}.{component}.{stat}",
+                             "kind": "pdge", "table": "pdge", "value": value, "uncertainty": unc, "unit": unit})
+    return pd.DataFrame(rows, columns=list(QUANTITY_COLUMNS))
+
+
+def campaign_times(images: pd.DataFrame) -> pd.Series:
+    """Capture time of each campaign: its first image timestamp (UTC), indexed by campaign_id."""
+    if images.empty:
+        return pd.Series(dtype="datetime64[us, UTC]", name="time")
+    _require(images, ("campaign_id", "timestamp"), "images")
+    stamps = pd.to_datetime(images["timestamp"], utc=True, errors="coerce")
+    return stamps.groupby(images["campaign_id"].astype(str)).min().rename("time")
+
+
+# --------------------------------------------------------------------------------------------
+# Flagging
+# --------------------------------------------------------------------------------------------
+
+
+def campaign_order(campaign_ids, times: pd.Series) -> list[str]:
+    """Campaigns by capture time (then id); campaigns without a known time last."""
+    ids = sorted(set(map(str, campaign_ids)))
+    known = {c: times.get(c, pd.NaT) for c in ids}
+    return sorted(ids, key=lambda c: (pd.isna(known[c]), known[c] if not pd.isna(known[c]) else 0, c))
+
+
+def _rules(delta: np.ndarray, u_c: np.ndarray, tol: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray,
+                                                                                    np.ndarray]:
+    """(abs exceeded, sig exceeded, u known) per row; NaN deltas exceed nothing."""
+    magnitude = np.abs(delta)
+    with np.errstate(invalid="ignore"):
+        above_abs = magnitude > tol
+        known = np.isfinite(u_c)
+        above_sig = known & (magnitude > k * np.where(known, u_c, np.inf))
+    return above_abs, above_sig, known
+
+
+def flag_drift(quantities: pd.DataFrame, times: pd.Series, tolerance: DriftTolerance,
+               reference: str | None = None) -> pd.DataFrame:
+    """The drift table: every quantity of every campaign against the reference campaign.
+
+    quantities: rows as :func:`pige_quantities` / :func:`pdge_quantities` (µm, arcsec).
+    times: capture time per campaign_id (:func:`campaign_times`). reference: the reference
+    campaign_id; default the earliest campaign. Returns :data:`DRIFT_COLUMNS`, campaigns in capture
+    order: delta_from_reference = value − reference value, combined_uncertainty = √(u² + u_ref²),
+    z = |Δ| / u_c, rule and flagged as in the module docstring. A quantity the reference lacks is
+    "unavailable". Raises ValueError for an unknown reference or unit.
+    """
+    if quantities.empty:
+        return pd.DataFrame(columns=list(DRIFT_COLUMNS))
+    order = campaign_order(quantities["campaign_id"], times)
+    reference = order[0] if reference is None else str(reference)
+    if reference not in order:
+        raise ValueError(f"reference campaign {reference!r} has no pige/pdge results (campaigns: {order})")
+    q = quantities.copy()
+    q["campaign_id"] = q["campaign_id"].astype(str)
+    ref = q[q["campaign_id"] == reference].drop_duplicates("quantity").set_index("quantity")
+    ref_value = q["quantity"].map(ref["value"]).to_numpy(dtype=float)
+    ref_unc = q["quantity"].map(ref["uncertainty"]).to_numpy(dtype=float)
+    value = q["value"].to_numpy(dtype=float)
+    delta = value - ref_value
+    u_c = np.sqrt(q["uncertainty"].to_numpy(dtype=float) ** 2 + ref_unc**2)
+    tol = np.array([tolerance.absolute(u) for u in q["unit"].astype(str)])
+    above_abs, above_sig, known = _rules(delta, u_c, tol, tolerance.k)
+    available = np.isfinite(delta)
+    is_ref = (q["campaign_id"] == reference).to_numpy()
+
+    names = np.where(above_abs & above_sig, "abs+sig", np.where(above_abs, "abs", np.where(above_sig, "sig",
+                                                                                          "within")))
+    rule = np.where(known, names, np.where(above_abs, "abs (u unknown)", "within (u unknown)"))
+    rule = np.where(available, rule, "unavailable")
+    rule = np.where(is_ref, "reference", rule)
+    policy = {"both": above_abs & (above_sig | ~known), "abs": above_abs, "sig": above_sig,
+              "either": above_abs | above_sig}[tolerance.require]
+    flagged = policy & available & ~is_ref
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.abs(delta) / u_c
+    q["time"] = pd.to_datetime(q["campaign_id"].map(times), utc=True).astype("datetime64[us, UTC]")
+    q["reference_campaign_id"] = reference
+    q["delta_from_reference"] = np.where(is_ref, 0.0, delta)
+    q["combined_uncertainty"] = u_c
+    q["z"] = np.where(is_ref, 0.0, z)
+    q["flagged"] = flagged
+    q["rule"] = rule
+    rank = {c: i for i, c in enumerate(order)}
+    q = q.assign(_rank=q["campaign_id"].map(rank)).sort_values(["_rank"], kind="stable").drop(columns="_rank")
+    return q[list(DRIFT_COLUMNS)].reset_index(drop=True)
+
+
+def drift_table(pige: pd.DataFrame, pdge: pd.DataFrame, images: pd.DataFrame, tolerance: DriftTolerance,
+                reference: str | None = None) -> pd.DataFrame:
+    """:func:`flag_drift` of the PIGE and PDGE quantities of every campaign in the lake tables."""
+    quantities = pd.concat([pige_quantities(pige), pdge_quantities(pdge)], ignore_index=True)
+    return flag_drift(quantities, campaign_times(images), tolerance, reference)
+
+
+# --------------------------------------------------------------------------------------------
+# Verification and verdict
+# --------------------------------------------------------------------------------------------
+
+
+def verification_summary(verification: pd.DataFrame) -> pd.DataFrame:
+    """Mean tip error per campaign, phase (before/after) and source (vbm/truth) over the validation
+    poses: columns campaign_id, phase, source, n, position_um, position_sem_um,
+    orientation_arcsec, orientation_sem_arcsec (sem: standard error of the mean, ddof = 1)."""
+    columns = ["campaign_id", "phase", "source", "n", "position_um", "position_sem_um", "orientation_arcsec",
+               "orientation_sem_arcsec"]
+    if verification.empty:
+        return pd.DataFrame(columns=columns)
+    _require(verification, ("campaign_id", "phase", "source", "position_um", "orientation_arcsec"), "verification")
+    v = verification.assign(campaign_id=verification["campaign_id"].astype(str))
+    g = v.groupby(["campaign_id", "phase", "source"])
+    out = pd.DataFrame({"n": g["position_um"].count(),
+                        "position_um": g["position_um"].mean(), "position_sem_um": g["position_um"].sem(),
+                        "orientation_arcsec": g["orientation_arcsec"].mean(),
+                        "orientation_sem_arcsec": g["orientation_arcsec"].sem()}).reset_index()
+    return out[columns]
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether the machine needs recompensation, with the reasons in words (Markdown)."""
+
+    needs_recompensation: bool
+    latest_campaign_id: str | None
+    reference_campaign_id: str | None
+    reasons: tuple[str, ...]
+    notes: tuple[str, ...]
+
+    def text(self) -> str:
+        """The verdict as a Markdown paragraph and bullet list."""
+        if self.latest_campaign_id is None:
+            return "**No verdict:** no calibrated campaign in the results lake."
+        head = ("**Recompensate the machine.**" if self.needs_recompensation else
+                "**No recompensation needed.**")
+        head += (f" Latest campaign `{self.latest_campaign_id}` against reference "
+                 f"`{self.reference_campaign_id}`.")
+        lines = [f"- {r}" for r in self.reasons] + [f"- {n}" for n in self.notes]
+        return head + ("\n\n" + "\n".join(lines) if lines else "")
+
+
+def _describe(rows: pd.DataFrame, limit: int = 8) -> str:
+    from tasks.report.tables import UNIT_LABEL
+
+    parts = [f"{r.quantity} {r.delta_from_reference:+.2f} {UNIT_LABEL.get(r.unit, r.unit)} (z = {r.z:.1f})"
+             for r in rows.sort_values("z", ascending=False).head(limit).itertuples()]
+    more = f" and {len(rows) - limit} more" if len(rows) > limit else ""
+    return ", ".join(parts) + more
+
+
+def verdict(drift: pd.DataFrame, verification: pd.DataFrame, tolerance: DriftTolerance) -> Verdict:
+    """Does the machine need recompensation? Judged on the latest campaign (by capture time).
+
+    drift: :func:`flag_drift` output; verification: :func:`verification_summary` output. Yes when
+    the latest campaign has a flagged machine quantity (a PIGE, constant or squareness parameter,
+    or a PDGE statistic: the compensation computed at the reference no longer describes the
+    machine), or when its mean VBM-measured tip error after its own compensation exceeds
+    ``tolerance.after_position_um`` or ``after_orientation_arcsec`` (the identified model does not
+    compensate the machine well enough). A flagged camera-mount parameter is a note (the camera
+    moved; check its fixture), not a reason.
+    """
+    if drift.empty:
+        return Verdict(False, None, None, (), ())
+    latest = str(drift["campaign_id"].iloc[-1])
+    reference = str(drift["reference_campaign_id"].iloc[0])
+    rows = drift[drift["campaign_id"] == latest]
+    reasons, notes = [], []
+    if latest == reference:
+        notes.append("Only the reference campaign is calibrated: no drift to judge yet.")
+    machine = rows[rows["flagged"] & rows["kind"].isin(MACHINE_PIGE_KINDS)]
+    pdge = rows[rows["flagged"] & (rows["kind"] == "pdge")]
+    mount = rows[rows["flagged"] & (rows["kind"] == "mount")]
+    if len(machine):
+        reasons.append(f"{len(machine)} PIGE parameter(s) moved past tolerance: {_describe(machine)}.")
+    if len(pdge):
+        reasons.append(f"{len(pdge)} PDGE statistic(s) moved past tolerance: {_describe(pdge)}.")
+    if len(mount):
+        notes.append(f"Camera mount parameter(s) moved: {_describe(mount)} — check the camera fixture.")
+    unavailable = int((rows["rule"] == "unavailable").sum())
+    if unavailable and latest != reference:
+        notes.append(f"{unavailable} quantity(ies) could not be compared (unidentifiable in this or the "
+                     f"reference campaign).")
+    after = verification[(verification["campaign_id"].astype(str) == latest) & (verification["phase"] == "after")
+                         & (verification["source"] == "vbm")] if not verification.empty else verification
+    if after.empty:
+        notes.append("No after-compensation capture for this campaign: compensation quality not judged.")
+    else:
+        a = after.iloc[0]
+        past = (a.position_um > tolerance.after_position_um
+                or a.orientation_arcsec > tolerance.after_orientation_arcsec)
+        sentence = (f"Mean tip error after compensation (VBM, {int(a.n)} validation poses): {a.position_um:.2f} µm "
+                    f"and {a.orientation_arcsec:.1f} arcsec (threshold {tolerance.after_position_um:g} µm, "
+                    f"{tolerance.after_orientation_arcsec:g} arcsec)")
+        (reasons if past else notes).append(sentence + (": past the threshold." if past else ": within."))
+    if not reasons and latest != reference:
+        notes.insert(0, "No PIGE or PDGE quantity moved past tolerance.")
+    return Verdict(bool(reasons), latest, reference, tuple(reasons), tuple(notes))

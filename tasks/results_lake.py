@@ -12,6 +12,9 @@ Layout (design §4)::
     <root>/<table>/campaign_id=<id>/part-0.parquet
     <root>/.staging/                     partitions being written (outside every table's glob)
 
+Schemas: ``tasks.lake_schema`` registers every table's columns, keys and schema version
+(docs/results-schema.md).
+
 ``<root>`` is the ``root`` argument, else the environment variable ``FIVECAL_RESULTS_DIR``, else
 ``data/results`` (relative to the working directory). The ``campaign_id`` column lives only in
 the folder name (hive partitioning); readers get it back from DuckDB's ``hive_partitioning``.
@@ -19,9 +22,12 @@ the folder name (hive partitioning); readers get it back from DuckDB's ``hive_pa
 Writes are atomic per partition: the new partition is written completely in a staging folder,
 then swapped with the old one by a single rename (Linux ``renameat2(RENAME_EXCHANGE)``; where
 that is unavailable, two renames, so a reader may briefly find the partition absent but never
-half of one). A re-run replaces a partition, never half of one. Each file carries provenance
-(fivecal version, input content hash, parameters) as JSON under the ``fivecal`` key of its
-Parquet schema metadata; see :func:`read_provenance`.
+half of one). A re-run replaces a partition, never half of one. A writer killed mid-write leaves
+its staging folder behind, outside every table; the next write on the same host removes the
+folders of writers that are no longer running. Each file carries provenance (fivecal version,
+input content hash, parameters), the ``table``, ``campaign_id`` and the table's ``schema_version``
+(from ``tasks.lake_schema``; null for a table not in the registry) as JSON under the ``fivecal``
+key of its Parquet schema metadata; see :func:`read_provenance`.
 
 Plain DuckDB works as well::
 
@@ -35,10 +41,12 @@ from __future__ import annotations
 
 import ctypes
 import errno
+import hashlib
 import json
 import os
 import re
 import shutil
+import socket
 import sys
 import tempfile
 from pathlib import Path
@@ -49,6 +57,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from tasks import lake_schema
 from tasks.campaign_io import atomic_write_parquet
 
 DEFAULT_RESULTS_DIR = Path("data/results")
@@ -61,6 +70,8 @@ _NULLABLE_INTS = {pa.int8(): pd.Int8Dtype(), pa.int16(): pd.Int16Dtype(), pa.int
                   pa.int64(): pd.Int64Dtype(), pa.uint8(): pd.UInt8Dtype(), pa.uint16(): pd.UInt16Dtype(),
                   pa.uint32(): pd.UInt32Dtype(), pa.uint64(): pd.UInt64Dtype()}
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+# a staging folder is <table>.<campaign_id>.pid<pid>.<host tag>.<random>; see _clean_staging
+_STAGING = re.compile(r"\.pid(\d+)\.([0-9a-f]{8})\.[A-Za-z0-9_]+$")
 
 
 def results_root(root: str | Path | None = None) -> Path:
@@ -83,9 +94,12 @@ def write_partition(table_name: str, campaign_id: str, df: pd.DataFrame, provena
     """Replace the partition ``campaign_id`` of ``table_name`` with ``df``; returns the Parquet file.
 
     df: the rows of this campaign. A ``campaign_id`` column, if present, must equal
-    ``campaign_id`` everywhere and is dropped (it is the partition). provenance: JSON-able dict
-    stored in the schema metadata together with ``table`` and ``campaign_id``.
-    Atomic: on any error the previous partition (if any) is untouched and nothing is left behind.
+    ``campaign_id`` everywhere and is dropped (it is the partition). Columns the registry
+    declares int64 or string are cast losslessly to it (``tasks.lake_schema.conform``).
+    provenance: JSON-able dict stored in the schema metadata together with ``table``,
+    ``campaign_id`` and ``schema_version`` (these three are set here and win over the dict's).
+    Atomic: on any error the previous partition (if any) is untouched and nothing is left behind;
+    a killed writer leaves only its staging folder (outside the tables), removed by a later write.
     """
     dest = partition_path(table_name, campaign_id, root)
     if PARTITION_COLUMN in df.columns:
@@ -94,17 +108,47 @@ def write_partition(table_name: str, campaign_id: str, df: pd.DataFrame, provena
             raise ValueError(f"{table_name}: rows of campaign(s) {sorted(set(values) - {campaign_id})} "
                              f"in the partition of {campaign_id}")
         df = df.drop(columns=PARTITION_COLUMN)
+    df = lake_schema.conform(table_name, df)
     staging_root = results_root(root) / STAGING_DIR
     staging_root.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=staging_root, prefix=f"{table_name}.{campaign_id}."))
+    _clean_staging(staging_root)
+    prefix = f"{table_name}.{campaign_id}.pid{os.getpid()}.{_host_tag()}."
+    staging = Path(tempfile.mkdtemp(dir=staging_root, prefix=prefix))
     try:
-        meta = {"table": table_name, PARTITION_COLUMN: campaign_id, **provenance}
+        meta = {**provenance, "table": table_name, PARTITION_COLUMN: campaign_id,
+                "schema_version": lake_schema.schema_version(table_name)}
         atomic_write_parquet(staging / PART_FILE, df, meta)
         dest.parent.mkdir(parents=True, exist_ok=True)
         _swap_in(staging, dest)
     finally:
         shutil.rmtree(staging, ignore_errors=True)  # the old partition after a swap, or a failed write
     return dest / PART_FILE
+
+
+def _host_tag() -> str:
+    return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+
+
+def _clean_staging(staging_root: Path) -> None:
+    """Remove the staging folders of writers on this host that are no longer running (killed
+    mid-write). Folders of live writers, of other hosts and the ``.old`` folder of the
+    two-rename fallback (possibly the only copy of a partition) are left alone."""
+    host = _host_tag()
+    for entry in staging_root.iterdir():
+        m = _STAGING.search(entry.name)
+        if m is None or m.group(2) != host or _alive(int(m.group(1))):
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _swap_in(new: Path, dest: Path) -> None:
@@ -160,20 +204,38 @@ def read_table(table_name: str, root: str | Path | None = None, campaign_id: str
         _check_name("campaign_id", campaign_id)
     if not any(table_dir.glob(f"{PARTITION_COLUMN}=*/*.parquet")):
         return pd.DataFrame()
-    sql = (f"SELECT {PARTITION_COLUMN}, * EXCLUDE ({PARTITION_COLUMN}) FROM read_parquet($pattern, "
-           f"hive_partitioning = true, hive_types = {{'{PARTITION_COLUMN}': 'VARCHAR'}}, union_by_name = true)")
-    params: dict[str, Any] = {"pattern": str(table_dir / "**" / "*.parquet")}
+    sql = scan_sql("$pattern")
+    params: dict[str, Any] = {"pattern": table_glob(table_dir)}
     if campaign_id is not None:
         sql += f" WHERE {PARTITION_COLUMN} = $campaign_id"
         params["campaign_id"] = campaign_id
     with duckdb.connect() as con:
         con.execute("SET TimeZone = 'UTC'")
         table = con.sql(sql, params=params).to_arrow_table()
+    return arrow_to_pandas(table)
+
+
+def table_glob(table_dir: Path) -> str:
+    """The glob of every partition file of the table folder ``table_dir``."""
+    return str(table_dir / "**" / "*.parquet")
+
+
+def scan_sql(source: str) -> str:
+    """DuckDB SELECT over the partition files matched by ``source`` (a ``$parameter`` or a quoted
+    SQL string literal of a glob): ``campaign_id`` (VARCHAR, from the hive partition) first, then
+    the file's columns; ``union_by_name``, so a column missing from older partitions reads as null."""
+    return (f"SELECT {PARTITION_COLUMN}, * EXCLUDE ({PARTITION_COLUMN}) FROM read_parquet({source}, "
+            f"hive_partitioning = true, hive_types = {{'{PARTITION_COLUMN}': 'VARCHAR'}}, union_by_name = true)")
+
+
+def arrow_to_pandas(table: pa.Table) -> pd.DataFrame:
+    """An Arrow table as pandas with integers as nullable integers (Int64, ...)."""
     return table.to_pandas(types_mapper=_NULLABLE_INTS.get)
 
 
 def read_provenance(table_name: str, campaign_id: str, root: str | Path | None = None) -> dict[str, Any]:
-    """The provenance dict stored in a partition's Parquet schema metadata."""
+    """The provenance dict stored in a partition's Parquet schema metadata (with ``table``,
+    ``campaign_id`` and ``schema_version``)."""
     meta = pq.read_schema(partition_path(table_name, campaign_id, root) / PART_FILE).metadata or {}
     return json.loads(meta.get(b"fivecal", b"{}"))
 

@@ -6,15 +6,20 @@
   tests that damage it.
 - ``prefect_harness``: ONE Prefect test harness (temporary server and database) per session,
   with its own result storage (PREFECT_LOCAL_STORAGE_PATH) in a tmp folder. Flow tests use it.
+- ``calibrated_campaign``: a 47-image campaign calibrated once (``fivecal calibrate``) per test
+  run — shared by the xdist workers — with its lake and report. Read-only: copy it to change it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import pytest
 
@@ -95,3 +100,57 @@ def machine():
 def errors():
     """The prototype's frozen true errors."""
     return load_prototype_errors()
+
+
+CALIBRATED_CAMPAIGN_ID = "calibrated"
+
+
+class CalibratedCampaign(NamedTuple):
+    campaign: Path   # the campaign folder
+    results: Path    # its results lake root (every table of ingest, measure and calibrate)
+    reports: Path    # reports root: the report is reports/<campaign_id>/fixture/
+    summary: dict    # calibrate_campaign's return value (JSON round-tripped)
+
+
+@contextlib.contextmanager
+def _exclusive(lock_file: Path) -> Iterator[None]:
+    with open(lock_file, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+@pytest.fixture(scope="session")
+def calibrated_campaign(tmp_path_factory, request) -> CalibratedCampaign:
+    """A small simulated campaign (47 images: 1 calibration trial of 6 views per camera, 4 positions
+    per axis sweep, 12 five-axis and 3 validation poses) run once through
+    ``flows.calibrate.calibrate_campaign`` (run name "fixture"); about 25 s plus the Prefect server.
+
+    Computed once per test run: under pytest-xdist the first worker to need it calibrates (under
+    its ``prefect_harness``) while the others wait on a file lock, then every worker reads the
+    same folders. Do not modify them. The calibration's numbers may be poor (the science is being
+    reworked): use it for structure and contracts, not accuracy.
+    """
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    root = shared / "calibrated_campaign"
+    done = root / "summary.json"
+    with _exclusive(shared / "calibrated_campaign.lock"):
+        if not done.exists():
+            request.getfixturevalue("prefect_harness")
+            from flows.calibrate import calibrate_campaign
+            from tasks.campaign_plan import CampaignPlan
+            from tasks.simulate import write_campaign
+
+            shutil.rmtree(root, ignore_errors=True)
+            plan = CampaignPlan(calibration_trials=1, images_per_trial=6, sweep_positions=4, sweep_repeats=1,
+                                pige_poses=12, validation_poses=3)
+            folder = write_campaign(root / "campaigns" / CALIBRATED_CAMPAIGN_ID, CALIBRATED_CAMPAIGN_ID, seed=1,
+                                    size="small", plan=plan)
+            summary = calibrate_campaign(str(folder), results_root=str(root / "results"),
+                                         reports_root=str(root / "reports"), run="fixture")
+            done.write_text(json.dumps(summary, default=str))
+    return CalibratedCampaign(root / "campaigns" / CALIBRATED_CAMPAIGN_ID, root / "results", root / "reports",
+                              json.loads(done.read_text()))

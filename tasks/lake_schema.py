@@ -1,0 +1,425 @@
+"""The results lake's contract: every table, its columns (dtype, unit, frame, meaning), keys and schema version.
+
+SYNOPSIS::
+
+    from tasks.lake_schema import TABLES, schema_version, schema_problems
+    TABLES["pige"].keys                      # ('campaign_id', 'name')
+    schema_version("pige")                   # 1, stamped in each file's metadata by write_partition
+    schema_problems("pige", pq.read_schema(path))   # [] when the file matches the registry
+
+    python -m tasks.lake_schema --write docs/results-schema.md   # regenerate the doc's column tables
+    python -m tasks.lake_schema --check docs/results-schema.md   # exit 1 if the doc and registry differ
+
+Adding a table is one :class:`TableSchema` entry in ``_TABLES`` (then ``--write`` the doc). Bump a
+table's ``version`` when a column is removed, renamed, retyped or changes unit, frame or meaning.
+
+dtypes are the Arrow types in the Parquet file: ``string`` (Arrow string or large_string), ``int64``,
+``float64``, ``bool``, ``timestamp[us, UTC]``. Nulls: a float column uses NaN, other columns null.
+``campaign_id`` is the hive partition: it is in the folder name, not in the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+PARTITION = "campaign_id"
+DTYPES = ("string", "int64", "float64", "bool", "timestamp[us, UTC]")
+
+# frames: a column's ``frame`` is one of these keys (see docs/virtual-machine.md, docs/camera-calibration.md)
+COMMAND, IMAGE, PLATE_IN_CAMERA, PLATE_BODY = "machine command", "image", "plate → camera", "plate body"
+JOINT, PIGE_FRAME, WORKPIECE, TIP_ROTATION = "joint", "joint (eqs. 9–11)", "workpiece", "nominal tip"
+FRAMES = {
+    COMMAND: "axis coordinates as commanded: X/Y/Z in mm, A/C in degrees",
+    IMAGE: "pixels: u right, v down, origin at the centre of the top-left pixel",
+    PLATE_IN_CAMERA: "T_cam_plate maps plate-frame points (mm; origin at the grid centre, z out of the printed "
+                     "face) into the OpenCV camera frame (+z optical axis, +x towards +u, +y down)",
+    PLATE_BODY: "pose uncertainty as a body perturbation T_measured = T_true · exp(δ̂), δ = (v mm, ω rad) in "
+                "the plate frame",
+    JOINT: "a PDGE: the error motion of the axis in its own joint frame (local PoE, eq. 8), referred to home "
+           "(zero at command 0; the axis-line trends removed, docs/calibrate.md)",
+    PIGE_FRAME: "a PIGE, constant or mount: a component of a constant error screw in its joint's frame",
+    WORKPIECE: "tip position error: actual minus nominal tip position, in the workpiece (plate a) frame",
+    TIP_ROTATION: "tip orientation error: the rotation vector of R_nominal⁻¹ R_actual",
+}
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column. unit: "" for identifiers, counts and dimensionless numbers. frame: "" when none
+    applies. reproducible: False for wall-clock timings, which differ from run to run."""
+
+    name: str
+    dtype: str
+    unit: str = ""
+    frame: str = ""
+    meaning: str = ""
+    reproducible: bool = True
+
+    def __post_init__(self):
+        if self.dtype not in DTYPES:
+            raise ValueError(f"column {self.name}: dtype {self.dtype!r} is not one of {DTYPES}")
+        if self.frame and self.frame not in FRAMES:
+            raise ValueError(f"column {self.name}: frame {self.frame!r} is not one of {list(FRAMES)}")
+
+
+@dataclass(frozen=True)
+class TableSchema:
+    """A lake table: ``<root>/<name>/campaign_id=<id>/part-0.parquet``, one row per ``row``.
+    keys: the columns that identify a row (campaign_id first). writer: the code that writes it."""
+
+    name: str
+    version: int
+    row: str
+    writer: str
+    keys: tuple[str, ...]
+    columns: tuple[Column, ...]
+
+    def __post_init__(self):
+        names = [c.name for c in self.columns]
+        if len(set(names)) != len(names):
+            raise ValueError(f"table {self.name}: duplicate column names")
+        if missing := [k for k in self.keys if k != PARTITION and k not in names]:
+            raise ValueError(f"table {self.name}: keys {missing} are not columns")
+
+    @property
+    def column_names(self) -> list[str]:
+        return [c.name for c in self.columns]
+
+    def column(self, name: str) -> Column:
+        """The column ``name`` (KeyError naming the table if there is none)."""
+        for c in self.columns:
+            if c.name == name:
+                return c
+        raise KeyError(f"table {self.name} has no column {name!r}")
+
+
+def _c(name, dtype, unit="", frame="", meaning="", reproducible=True) -> Column:
+    return Column(name, dtype, unit, frame, meaning, reproducible)
+
+
+def _s(name, meaning) -> Column:
+    return Column(name, "string", meaning=meaning)
+
+
+def _i(name, meaning, unit="") -> Column:
+    return Column(name, "int64", unit, meaning=meaning)
+
+
+_AXES = (("X", "mm", "um"), ("Y", "mm", "um"), ("Z", "mm", "um"), ("A", "deg", "arcsec"), ("C", "deg", "arcsec"))
+_PDGE_COMPONENTS = (("dx_um", "um", "δx"), ("dy_um", "um", "δy"), ("dz_um", "um", "δz"),
+                    ("ex_arcsec", "arcsec", "εx"), ("ey_arcsec", "arcsec", "εy"), ("ez_arcsec", "arcsec", "εz"))
+_TIP = (("dx_um", "um", WORKPIECE, "x component of the tip position error"),
+        ("dy_um", "um", WORKPIECE, "y component of the tip position error"),
+        ("dz_um", "um", WORKPIECE, "z component of the tip position error"),
+        ("rx_arcsec", "arcsec", TIP_ROTATION, "x component of the tip orientation error"),
+        ("ry_arcsec", "arcsec", TIP_ROTATION, "y component of the tip orientation error"),
+        ("rz_arcsec", "arcsec", TIP_ROTATION, "z component of the tip orientation error"))
+_STATUS = _s("status", "'ok', or why the row has no result (see the message)")
+_MESSAGE = _s("message", "what went wrong, naming the file; empty when ok")
+
+
+def _pdge_columns() -> tuple[Column, ...]:
+    cols = []
+    for name, unit, sym in _PDGE_COMPONENTS:
+        cols += [_c(name, "float64", unit, JOINT, f"{sym} of the error motion, mean over the repeats"),
+                 _c(f"std_{name}", "float64", unit, JOINT, f"standard error of {name}"),
+                 _c(f"fit_{name}", "float64", unit, JOINT, f"{sym} of the smoothing-spline model"),
+                 _c(f"truth_{name}", "float64", unit, JOINT, f"simulator's true {sym} in the same gauge (NaN "
+                    "unless simulated)")]
+    return tuple(cols)
+
+
+def _pose_columns() -> tuple[Column, ...]:
+    T = [_c(f"T{i}{j}", "float64", "mm" if j == 3 else "", PLATE_IN_CAMERA,
+            f"T_cam_plate row {i}, column {j} ({'translation' if j == 3 else 'rotation'})")
+         for i in range(3) for j in range(4)]
+    std = [_c(f"std_{n}", "float64", u, PLATE_BODY, f"standard deviation of {s}")
+           for n, u, s in (("vx_mm", "mm", "v_x"), ("vy_mm", "mm", "v_y"), ("vz_mm", "mm", "v_z"),
+                           ("wx_arcsec", "arcsec", "ω_x"), ("wy_arcsec", "arcsec", "ω_y"),
+                           ("wz_arcsec", "arcsec", "ω_z"))]
+    unit = ("mm", "mm", "mm", "rad", "rad", "rad")
+    cov = [_c(f"cov{i}{j}", "float64", f"{unit[i]}²" if unit[i] == unit[j] else f"{unit[i]}·{unit[j]}", PLATE_BODY,
+              f"covariance of δ = (v, ω), element ({i}, {j})") for i in range(6) for j in range(6)]
+    return (_s("image_id", "image"), _s("camera", "camera name in campaign.json"), _STATUS, _MESSAGE,
+            _c("n_points", "int64", meaning="dot centres used by PnP (null without a pose)"),
+            *T, _c("rms_px", "float64", "px", IMAGE, "PnP reprojection RMS"),
+            _c("sigma_px", "float64", "px", IMAGE, "pixel noise σ estimated from the residuals"), *std, *cov)
+
+
+def _compensation_columns() -> tuple[Column, ...]:
+    cols = [_s("image_id", "validation image whose commanded pose is compensated")]
+    for axis, unit, corr_unit in _AXES:
+        cols += [_c(axis, "float64", unit, COMMAND, f"nominal {axis} command"),
+                 _c(f"{axis}_compensated", "float64", unit, COMMAND, f"{axis} command after compensation (IK "
+                    "of the identified model)"),
+                 _c(f"{axis}_correction_{corr_unit}", "float64", corr_unit, COMMAND,
+                    f"{axis}_compensated − {axis}")]
+    return tuple(cols)
+
+
+_CAMERA_INTRINSICS = (("fx_px", "px", "focal length along u"), ("fy_px", "px", "focal length along v"),
+                      ("cx_px", "px", "principal point u"), ("cy_px", "px", "principal point v"),
+                      ("k1", "", "radial distortion k1"), ("k2", "", "radial distortion k2"),
+                      ("p1", "", "tangential distortion p1"), ("p2", "", "tangential distortion p2"),
+                      ("k3", "", "radial distortion k3"))
+
+_TABLES = (
+    TableSchema("images", 1, "manifest row", "tasks/ingest_steps.py (fivecal ingest)", (PARTITION, "manifest_row"), (
+        _i("manifest_row", "1-based data row of manifest.csv"),
+        _s("image_id", "as in the manifest"),
+        _s("path", "image file relative to the campaign folder"),
+        _s("camera", "camera name"), _s("stage", "camera_calibration | pdge | pige | validation"),
+        _s("group", "calibration trial, swept axis, ... (as in the manifest)"),
+        _i("repeat", "repeat index (null if invalid)"),
+        *(_c(f"{a}_{u}", "float64", u, COMMAND, f"commanded {a} (NaN if invalid)") for a, u, _ in _AXES),
+        _c("timestamp", "timestamp[us, UTC]", "UTC", meaning="capture time (null if invalid)"),
+        _c("temperature_c", "float64", "°C", meaning="temperature at capture (NaN if absent)"),
+        _s("content_sha256", "sha256 (hex) of the file bytes; null if the file was not read"),
+        _i("width_px", "decoded image width (null if not decoded)", "px"),
+        _i("height_px", "decoded image height (null if not decoded)", "px"),
+        _s("status", "'ok' or a fault code (docs/ingest.md)"),
+        _s("message", "the faults found, naming manifest row and file; empty when ok"))),
+    TableSchema("dots", 1, "detected dot", "tasks/vision_steps.py (fivecal measure)",
+                (PARTITION, "image_id", "row", "col"), (
+        _s("image_id", "image"), _s("camera", "camera name"),
+        _i("row", "dot row on the plate (0 = first row of the plate frame)"),
+        _i("col", "dot column on the plate"),
+        _c("u_px", "float64", "px", IMAGE, "dot centre, u"), _c("v_px", "float64", "px", IMAGE, "dot centre, v"),
+        _c("residual_rms_px", "float64", "px", IMAGE, "RMS residual of the dot's edge fit"),
+        _c("support_ratio", "float64", meaning="fraction of the dot's edge supporting the fit (0–1)"),
+        _s("detector", "rrht | blob | hough"))),
+    TableSchema("camera_calibration", 1, "self-calibration trial per camera, plus a 'joint' row per camera",
+                "tasks/vision_steps.py (fivecal measure)", (PARTITION, "camera", "trial"), (
+        _s("camera", "camera name"), _s("trial", "trial name, or 'joint': the best estimate fitted on every view"),
+        _STATUS, _MESSAGE,
+        _i("n_images", "views used"), _i("n_points", "dot centres used"),
+        _c("rms_px", "float64", "px", IMAGE, "OpenCV reprojection RMS sqrt(Σ|r|²/N) (Table 3)"),
+        _c("sigma_px", "float64", "px", IMAGE, "sqrt(Σ|r|²/(2N − p))"),
+        *(_c(n, "float64", u, IMAGE if u else "", m) for n, u, m in _CAMERA_INTRINSICS),
+        *(_c(f"std_{n}", "float64", u, IMAGE if u else "", f"OpenCV standard deviation of {n}")
+          for n, u, _ in _CAMERA_INTRINSICS))),
+    TableSchema("poses", 1, "image", "tasks/vision_steps.py (fivecal measure)", (PARTITION, "image_id"),
+                _pose_columns()),
+    TableSchema("detector_comparison", 1, "detector × camera, plus camera 'all' per detector (Table 4)",
+                "tasks/detector_comparison.py (fivecal compare-detectors)", (PARTITION, "detector", "camera"), (
+        _s("detector", "rrht | blob | hough"), _s("camera", "camera name, or 'all' (pooled)"),
+        _i("n_images", "images sampled"), _i("n_in_view", "of them, whole plate in view (truth; null without)"),
+        _i("n_found", "whole grid found"),
+        _c("detection_rate_pct", "float64", "%", meaning="100·n_found/n_images"),
+        _c("detection_rate_in_view_pct", "float64", "%", meaning="the same over the in-view images"),
+        _i("n_relabelled", "found grids labelled as a symmetric relabelling of the truth"),
+        _c("runtime_mean_ms", "float64", "ms", meaning="wall time of detection per image, mean", reproducible=False),
+        _c("runtime_median_ms", "float64", "ms", meaning="wall time of detection per image, median",
+           reproducible=False),
+        _i("n_dots", "dot centres scored"),
+        _c("centre_rms_px", "float64", "px", IMAGE, "RMS distance of found to true centres"),
+        _c("centre_max_px", "float64", "px", IMAGE, "max distance of found to true centres"),
+        _i("n_poses", "PnP poses obtained"),
+        _c("reproj_rms_px", "float64", "px", IMAGE, "PnP reprojection RMS with the calibrated intrinsics"),
+        _c("trans_err_mean_um", "float64", "um", PLATE_IN_CAMERA, "mean ‖t_est − t_true‖ of T_cam_plate"),
+        _c("trans_err_max_um", "float64", "um", PLATE_IN_CAMERA, "max ‖t_est − t_true‖"),
+        _c("rot_err_mean_arcsec", "float64", "arcsec", PLATE_IN_CAMERA, "mean angle of R_estᵀ R_true"),
+        _c("rot_err_max_arcsec", "float64", "arcsec", PLATE_IN_CAMERA, "max angle of R_estᵀ R_true"),
+        _c("trans_err_truecam_mean_um", "float64", "um", PLATE_IN_CAMERA, "trans_err_mean_um with true intrinsics"),
+        _c("rot_err_truecam_mean_arcsec", "float64", "arcsec", PLATE_IN_CAMERA,
+           "rot_err_mean_arcsec with true intrinsics"),
+        _s("intrinsics_source", "where the intrinsics came from"))),
+    TableSchema("pdge", 1, "axis × sweep position", "flows/calibrate.py (fivecal calibrate)",
+                (PARTITION, "axis", "position"), (
+        _s("axis", "X | Y | Z | A | C"),
+        _c("position", "float64", "mm or deg (position_unit)", COMMAND, "commanded position of the swept axis"),
+        _s("position_unit", "mm (linear axis) or deg (rotary axis)"),
+        _i("n_images", "sweep images averaged at this position"),
+        *_pdge_columns(),
+        _c("translation_um", "float64", "um", JOINT, "‖(dx, dy, dz)‖ of the measured mean"),
+        _c("rotation_arcsec", "float64", "arcsec", JOINT, "‖(ex, ey, ez)‖ of the measured mean"))),
+    TableSchema("pige", 1, "identified parameter", "flows/calibrate.py (fivecal calibrate)", (PARTITION, "name"), (
+        _s("name", "parameter, e.g. delta_AZ (PIGE), C.dz0 (constant), Y.dx_slope (squareness), camera1.ex (mount)"),
+        _s("kind", "pige | constant | squareness | mount"),
+        _s("joint", "axis (X, Y, Z, A, C) or attachment (camera1) the parameter belongs to"),
+        _s("unit", "um or arcsec: the unit of value, uncertainty, truth, truth_nominal"),
+        _c("value", "float64", "unit column", PIGE_FRAME, "estimate (NaN if unidentifiable)"),
+        _c("uncertainty", "float64", "unit column", PIGE_FRAME, "standard uncertainty (k = 1)"),
+        _c("identifiable", "bool", meaning="the poses determine it (SVD, docs/calibrate.md)"),
+        _s("note", "why not identifiable; empty otherwise"),
+        _c("truth", "float64", "unit column", PIGE_FRAME,
+           "simulator's truth in the identification's gauge (NaN unless simulated)"),
+        _c("truth_nominal", "float64", "unit column", PIGE_FRAME,
+           "simulator's raw PIGE (NaN unless simulated, or not a PIGE)"))),
+    TableSchema("compensation", 1, "validation pose", "flows/calibrate.py (fivecal calibrate)",
+                (PARTITION, "image_id"), _compensation_columns()),
+    TableSchema("verification", 1, "validation pose × phase × source", "flows/calibrate.py (fivecal calibrate)",
+                (PARTITION, "phase", "source", "image_id"), (
+        _s("image_id", "validation image"),
+        _i("pose", "0-based index of the pose within its (phase, source) rows"),
+        _s("phase", "before | after (compensation)"),
+        _s("source", "vbm (as the vision system measures it) | truth (simulator)"),
+        _c("position_um", "float64", "um", WORKPIECE, "‖tip position error‖"),
+        _c("orientation_arcsec", "float64", "arcsec", TIP_ROTATION, "‖tip orientation error‖"),
+        *(_c(n, "float64", u, f, m) for n, u, f, m in _TIP),
+        _c("noise_floor_position_um", "float64", "um", WORKPIECE,
+           "expected position error norm from measurement noise alone (vbm rows; NaN for truth)"),
+        _c("noise_floor_orientation_arcsec", "float64", "arcsec", TIP_ROTATION,
+           "expected orientation error norm from measurement noise alone (vbm rows; NaN for truth)"))),
+    TableSchema("formulations", 1, "kinematic formulation (Table 5)", "flows/calibrate.py (fivecal calibrate)",
+                (PARTITION, "formulation"), (
+        _s("formulation", "local PoE (ours) | Denavit–Hartenberg | global PoE"),
+        _c("mean_single_run_ms", "float64", "ms", meaning="one pose per call, per pose", reproducible=False),
+        _c("total_300_ms", "float64", "ms", meaning="one batched call for all the poses", reproducible=False),
+        _c("position_error_norm_um", "float64", "um", WORKPIECE, "mean ‖t_f − t_true‖ against the local PoE"),
+        _c("orientation_error_norm_arcsec", "float64", "arcsec", WORKPIECE,
+           "mean ‖log(R_f⁻¹ R_true)‖ against the local PoE"),
+        _s("note", "what the formulation leaves out"))),
+)
+TABLES: dict[str, TableSchema] = {t.name: t for t in _TABLES}
+
+
+def schema_for(table: str) -> TableSchema | None:
+    """The registry entry of ``table``, or None for a table the registry does not know."""
+    return TABLES.get(table)
+
+
+def schema_version(table: str) -> int | None:
+    """The schema version stamped into ``table``'s files (None: not in the registry)."""
+    t = TABLES.get(table)
+    return None if t is None else t.version
+
+
+def arrow_dtype(t: pa.DataType) -> str:
+    """The registry's name of an Arrow type (:data:`DTYPES`), else Arrow's own name."""
+    if pa.types.is_string(t) or pa.types.is_large_string(t):
+        return "string"
+    if pa.types.is_int64(t):
+        return "int64"
+    if pa.types.is_float64(t):
+        return "float64"
+    if pa.types.is_boolean(t):
+        return "bool"
+    if pa.types.is_timestamp(t) and t.unit == "us" and t.tz in ("UTC", "+00:00"):
+        return "timestamp[us, UTC]"
+    return str(t)
+
+
+def schema_problems(table: str, schema: pa.Schema) -> list[str]:
+    """What differs between a file's Arrow ``schema`` and the registry (names, order aside, and dtypes)."""
+    t = TABLES.get(table)
+    if t is None:
+        return [f"table {table!r} is not in the registry (tasks/lake_schema.py)"]
+    got = {f.name: arrow_dtype(f.type) for f in schema}
+    problems = [f"{table}: column {c.name} ({c.dtype}) missing from the file" for c in t.columns if c.name not in got]
+    problems += [f"{table}: column {n} ({d}) is not in the registry" for n, d in got.items()
+                 if n not in t.column_names]
+    problems += [f"{table}: column {c.name} is {got[c.name]} in the file, {c.dtype} in the registry"
+                 for c in t.columns if c.name in got and got[c.name] != c.dtype]
+    return problems
+
+
+def conform(table: str, df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with the lossless casts that make its Arrow types the registry's: an int64 column
+    that arrives as float (NaN for missing) becomes nullable Int64, a string column that is all
+    null becomes str. Other columns, and tables not in the registry, are left as they are.
+    Raises ValueError naming the table and column when an int64 column holds a non-integer."""
+    t = TABLES.get(table)
+    if t is None:
+        return df
+    casts = {}
+    for c in t.columns:
+        if c.name not in df.columns:
+            continue
+        s = df[c.name]
+        if c.dtype == "int64" and pd.api.types.is_float_dtype(s.dtype):
+            v = s.to_numpy(dtype=float, na_value=np.nan)
+            bad = ~np.isnan(v) & (v != np.round(v))
+            if bad.any():
+                raise ValueError(f"{table}.{c.name}: non-integer value {float(v[bad][0])!r} in row "
+                                 f"{int(np.flatnonzero(bad)[0])} of an int64 column")
+            casts[c.name] = s.astype("Int64")
+        elif c.dtype == "string" and s.dtype == object and len(s) and s.isna().all():
+            casts[c.name] = s.astype("str")
+    return df.assign(**casts) if casts else df
+
+
+# --------------------------------------------------------------------------------------------
+# The doc's column tables
+# --------------------------------------------------------------------------------------------
+
+BEGIN, END = "<!-- schema tables: generated by `python -m tasks.lake_schema --write`; do not edit -->", \
+    "<!-- end of generated schema tables -->"
+
+
+def _cell(text: str) -> str:
+    return str(text).replace("|", "\\|") or "—"
+
+
+def table_markdown(t: TableSchema) -> str:
+    """One table's section: version, row, keys, writer, then one line per column."""
+    lines = [f"### `{t.name}` (schema version {t.version})", "",
+             f"One row per {t.row}. Keys: {', '.join(f'`{k}`' for k in t.keys)}. Written by {t.writer}.", "",
+             "| column | dtype | unit | frame | meaning |", "|---|---|---|---|---|",
+             f"| `{PARTITION}` | string | — | — | hive partition (the folder name, not stored in the file) |"]
+    for c in t.columns:
+        meaning = c.meaning + (" (a timing: not reproducible)" if not c.reproducible else "")
+        lines.append(f"| `{c.name}` | {c.dtype} | {_cell(c.unit)} | {_cell(c.frame)} | {_cell(meaning)} |")
+    return "\n".join(lines)
+
+
+def registry_markdown() -> str:
+    """The frames glossary and every table's section, in registry order, between the markers."""
+    frames = "\n".join(["### Frames", "", "| frame | meaning |", "|---|---|",
+                         *(f"| {name} | {_cell(text)} |" for name, text in FRAMES.items())])
+    return "\n\n".join([BEGIN, frames, *(table_markdown(t) for t in _TABLES), END])
+
+
+def _generated_section(text: str) -> tuple[int, int]:
+    m = re.search(re.escape(BEGIN) + r".*?" + re.escape(END), text, flags=re.S)
+    if m is None:
+        raise ValueError("the generated-section markers are missing")
+    return m.start(), m.end()
+
+
+def doc_is_current(path: Path) -> bool:
+    """True when the doc's generated section equals :func:`registry_markdown`."""
+    text = Path(path).read_text(encoding="utf-8")
+    a, b = _generated_section(text)
+    return text[a:b] == registry_markdown()
+
+
+def write_doc(path: Path) -> None:
+    """Replace the generated section of ``path`` with the registry's tables."""
+    text = Path(path).read_text(encoding="utf-8")
+    a, b = _generated_section(text)
+    Path(path).write_text(text[:a] + registry_markdown() + text[b:], encoding="utf-8")
+
+
+def _main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description="The results lake's schema registry and its doc.")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--write", type=Path, metavar="DOC", help="regenerate the column tables of DOC")
+    g.add_argument("--check", type=Path, metavar="DOC", help="exit 1 if DOC's column tables are out of date")
+    g.add_argument("--print", action="store_true", help="print the column tables")
+    a = p.parse_args(argv)
+    try:
+        if a.print:
+            print(registry_markdown())
+        elif a.write:
+            write_doc(a.write)
+        elif not doc_is_current(a.check):
+            print(f"{a.check}: the column tables differ from tasks/lake_schema.py; run "
+                  f"python -m tasks.lake_schema --write {a.check}", file=sys.stderr)
+            return 1
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main())

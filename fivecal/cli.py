@@ -8,6 +8,8 @@ from typing import Annotated
 
 import typer
 
+from fivecal import lake_cli
+
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
 
@@ -273,6 +275,9 @@ def demo(
     else:
         typer.echo(f"using existing demo campaign {DEMO_CAMPAIGN}")
     calibrate(DEMO_CAMPAIGN, None, "rrht", Path("reports"))
+
+
+app.command("query")(lake_cli.query)
 
 
 def main() -> None:  # pragma: no cover

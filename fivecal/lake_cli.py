@@ -1,0 +1,33 @@
+"""``fivecal query`` and ``fivecal reproduce``: the results lake from the command line.
+
+Plain functions with typer annotations, registered in fivecal/cli.py.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+RESULTS_HELP = "results root (default data/results, or $FIVECAL_RESULTS_DIR)"
+
+
+def query(
+    sql: Annotated[str, typer.Argument(help="SQL over the lake; every table is a view, plus lake_partitions")],
+    results: Annotated[Path | None, typer.Option(help=RESULTS_HELP)] = None,
+    format: Annotated[str, typer.Option("--format", help="table, csv or json")] = "table",
+    max_rows: Annotated[int, typer.Option(help="rows printed by --format table (0: all)")] = 100,
+) -> None:
+    """Run SQL over every table of the results lake (DuckDB; docs/queries.md) and print the result."""
+    from tasks.lake_query import FORMATS, LakeQueryError, format_result, run_query
+
+    if format not in FORMATS:
+        typer.echo(f"error: --format {format!r}: choose one of {', '.join(FORMATS)}", err=True)
+        raise typer.Exit(2)
+    try:
+        result = run_query(sql, results)
+    except LakeQueryError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(format_result(result, format, max_rows))

@@ -11,7 +11,7 @@ What is compared: every campaign's quantities against the same quantities of a *
 campaign** (by default the earliest by capture time; in a lab, the campaign whose compensation the
 machine currently runs). The quantities are
 
-- each row of the ``pige`` table (the PIGEs of Table 2 and the constant, squareness and camera-mount
+- each row of the ``pige`` table (the PIGEs of Table 2 and the constant, squareness and mount (camera, plate)
   parameters fitted with them): its value and standard uncertainty as identified, in µm or arcsec;
   an unidentifiable parameter has no value and is not compared;
 - per axis and PDGE component (δx, δy, δz in µm; εx, εy, εz in arcsec; the ``pdge`` table's
@@ -52,7 +52,7 @@ import pandas as pd
 PDGE_COMPONENTS = {"dx_um": ("dx", "um"), "dy_um": ("dy", "um"), "dz_um": ("dz", "um"),
                    "ex_arcsec": ("ex", "arcsec"), "ey_arcsec": ("ey", "arcsec"), "ez_arcsec": ("ez", "arcsec")}
 PDGE_STATISTICS = ("mean", "std", "max")
-MACHINE_PIGE_KINDS = ("pige", "constant", "squareness")  # the machine's geometry; "mount" is the camera's
+SETUP_KINDS = ("mount",)  # pige-table kinds of the measurement setup (camera, plate fixtures), not of the machine
 POLICIES = ("both", "abs", "sig", "either")
 DRIFT_COLUMNS = ("campaign_id", "time", "quantity", "kind", "table", "value", "uncertainty", "unit",
                  "reference_campaign_id", "delta_from_reference", "combined_uncertainty", "z", "flagged", "rule")
@@ -319,12 +319,12 @@ def verdict(drift: pd.DataFrame, verification: pd.DataFrame, tolerance: DriftTol
     """Does the machine need recompensation? Judged on the latest campaign (by capture time).
 
     drift: :func:`flag_drift` output; verification: :func:`verification_summary` output. Yes when
-    the latest campaign has a flagged machine quantity (a PIGE, constant or squareness parameter,
-    or a PDGE statistic: the compensation computed at the reference no longer describes the
-    machine), or when its mean VBM-measured tip error after its own compensation exceeds
-    ``tolerance.after_position_um`` or ``after_orientation_arcsec`` (the identified model does not
-    compensate the machine well enough). A flagged camera-mount parameter is a note (the camera
-    moved; check its fixture), not a reason.
+    the latest campaign has a flagged machine quantity (a ``pige`` table parameter of any kind but
+    :data:`SETUP_KINDS` — PIGEs, constants, squareness — or a PDGE statistic: the compensation
+    computed at the reference no longer describes the machine), or when its mean VBM-measured
+    tip error after its own compensation exceeds ``tolerance.after_position_um`` or
+    ``after_orientation_arcsec`` (the identified model does not compensate the machine well
+    enough). A flagged mount parameter (camera or plate fixture) is a note, not a reason.
     """
     if drift.empty:
         return Verdict(False, None, None, (), ())
@@ -334,15 +334,16 @@ def verdict(drift: pd.DataFrame, verification: pd.DataFrame, tolerance: DriftTol
     reasons, notes = [], []
     if latest == reference:
         notes.append("Only the reference campaign is calibrated: no drift to judge yet.")
-    machine = rows[rows["flagged"] & rows["kind"].isin(MACHINE_PIGE_KINDS)]
+    machine = rows[rows["flagged"] & (rows["table"] == "pige") & ~rows["kind"].isin(SETUP_KINDS)]
     pdge = rows[rows["flagged"] & (rows["kind"] == "pdge")]
-    mount = rows[rows["flagged"] & (rows["kind"] == "mount")]
+    mount = rows[rows["flagged"] & (rows["table"] == "pige") & rows["kind"].isin(SETUP_KINDS)]
     if len(machine):
         reasons.append(f"{len(machine)} PIGE parameter(s) moved past tolerance: {_describe(machine)}.")
     if len(pdge):
         reasons.append(f"{len(pdge)} PDGE statistic(s) moved past tolerance: {_describe(pdge)}.")
     if len(mount):
-        notes.append(f"Camera mount parameter(s) moved: {_describe(mount)} — check the camera fixture.")
+        notes.append(f"Mount parameter(s) of the measurement setup (camera or plate) moved: {_describe(mount)} — "
+                     "check the fixtures; not an error of the machine.")
     unavailable = int((rows["rule"] == "unavailable").sum())
     if unavailable and latest != reference:
         notes.append(f"{unavailable} quantity(ies) could not be compared (unidentifiable in this or the "

@@ -22,30 +22,33 @@ def campaign_ranks(drift: pd.DataFrame) -> dict[str, int]:
     return {c: i + 1 for i, c in enumerate(dict.fromkeys(drift["campaign_id"].astype(str)))}
 
 
-def _trend_panel(ax, rows: pd.DataFrame, ranks: dict[str, int], tolerance: DriftTolerance, title: str) -> None:
-    """One quantity over the campaigns: value ±u, the reference value with its ±tolerance band,
-    flagged campaigns in red."""
+def _trend_panel(ax, rows: pd.DataFrame, ranks: dict[str, int], tolerance: DriftTolerance, title: str,
+                 colour: str = "C0", label: str | None = None, band: bool = True) -> None:
+    """One quantity over the campaigns: value ±u, the reference value dashed (with its ±tolerance
+    band when ``band``), flagged campaigns as red crosses."""
     rows = rows[np.isfinite(rows["value"].to_numpy(dtype=float))]
     ax.set_title(title, fontsize=8)
     ax.tick_params(labelsize=7)
     ax.grid(alpha=0.3)
     if rows.empty:
-        _no_data(ax, "not identified")
+        if band:
+            _no_data(ax, "not identified")
         return
     x = rows["campaign_id"].map(ranks).to_numpy(dtype=float)
     y = rows["value"].to_numpy(dtype=float)
     u = np.nan_to_num(rows["uncertainty"].to_numpy(dtype=float))
-    ax.errorbar(x, y, yerr=u, fmt="o-", ms=3, lw=0.8, capsize=2, color="C0")
+    ax.errorbar(x, y, yerr=u, fmt="o-", ms=3, lw=0.8, capsize=2, color=colour, label=label)
     ref = rows[rows["rule"] == "reference"]
     if len(ref):
         r = float(ref["value"].iloc[0])
-        tol = tolerance.absolute(str(ref["unit"].iloc[0]))
-        ax.axhline(r, color="grey", lw=0.8, ls="--")
-        ax.axhspan(r - tol, r + tol, color="grey", alpha=0.15, lw=0)
+        ax.axhline(r, color=colour if not band else "grey", lw=0.8, ls="--")
+        if band:
+            tol = tolerance.absolute(str(ref["unit"].iloc[0]))
+            ax.axhspan(r - tol, r + tol, color="grey", alpha=0.15, lw=0)
     flagged = rows[rows["flagged"].astype(bool)]
     if len(flagged):
         ax.plot(flagged["campaign_id"].map(ranks), flagged["value"], "x", color="C3", ms=8, mew=2)
-    ax.set_xticks(sorted(set(x.astype(int))))
+    ax.set_xticks(sorted(set(ranks.values())))
 
 
 def _grid(n: int, ncols: int, width_in: float = 2.6, height_in: float = 2.0):
@@ -71,17 +74,17 @@ def pige_trend(drift: pd.DataFrame, tolerance: DriftTolerance, ncols: int = 4) -
 
 
 def pdge_trend(drift: pd.DataFrame, axis: str, tolerance: DriftTolerance) -> Figure:
-    """The PDGE statistics of one axis over the campaigns: rows mean / std / max, columns the six
-    components."""
+    """The PDGE statistics of one axis over the campaigns: one panel per component with its mean,
+    std and max |·| (dashed: the reference campaign's values)."""
     ranks = campaign_ranks(drift)
-    fig, axes = _grid(len(PDGE_STATISTICS) * len(PDGE_COMPONENTS), len(PDGE_COMPONENTS), 2.3, 1.9)
-    for i, stat in enumerate(PDGE_STATISTICS):
-        for j, (component, unit) in enumerate(PDGE_COMPONENTS.values()):
-            name = f"{axis}.{component}.{stat}"
-            _trend_panel(axes[i * len(PDGE_COMPONENTS) + j], drift[drift["quantity"] == name], ranks, tolerance,
-                         f"{component} {stat} ({UNIT_LABEL[unit]})")
-    fig.suptitle(f"PDGE statistics of the {axis} axis against campaign (±1u; dashed: reference, "
-                 f"band: ±tolerance; ×: flagged)", fontsize=9)
+    fig, axes = _grid(len(PDGE_COMPONENTS), 3, 3.2, 2.3)
+    for ax, (component, unit) in zip(axes, PDGE_COMPONENTS.values(), strict=True):
+        for stat, colour in zip(PDGE_STATISTICS, ("C0", "C1", "C2"), strict=True):
+            _trend_panel(ax, drift[drift["quantity"] == f"{axis}.{component}.{stat}"], ranks, tolerance,
+                         f"{component} ({UNIT_LABEL[unit]})", colour, stat, band=False)
+        ax.legend(fontsize=6, loc="upper left")
+    fig.suptitle(f"PDGE statistics of the {axis} axis against campaign (±1u; dashed: reference; ×: flagged)",
+                 fontsize=9)
     return fig
 
 

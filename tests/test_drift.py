@@ -32,7 +32,7 @@ PIGE = [  # name, kind, unit, (ref value, u), (later value, u), later identifiab
     ("gamma_YX", "pige", "arcsec", (5.0, 0.1), (7.0, 0.1), True),      # Δ 2″ < 15″, z 14.1: sig only
     ("alpha_YZ", "pige", "arcsec", (0.0, 20.0), (30.0, 20.0), True),   # Δ 30″ > 15″, z 1.06: abs only
     ("delta_AY", "pige", "um", (3.0, 1.0), (99.0, 1.0), False),        # unidentifiable later: unavailable
-    ("camera1.ez", "mount", "arcsec", (0.0, 1.0), (40.0, 1.0), True),  # camera moved: flagged, a note
+    ("camera1.ez", "mount", "arcsec", (0.0, 1.0), (40.0, 1.0), True),  # a fixture moved: flagged, a note
 ]
 
 
@@ -205,7 +205,7 @@ def test_verdict_recompensate_on_flagged_pige(drift):
     assert v.needs_recompensation and (v.latest_campaign_id, v.reference_campaign_id) == (LATER, REF)
     text = v.text()
     assert "Recompensate" in text and "delta_AZ +12.00 µm (z = 8.5)" in text and "X.dz.max" in text
-    assert "camera1.ez" in text and "check the camera fixture" in text  # a note, not a reason
+    assert "camera1.ez" in text and "check the fixtures" in text  # a note, not a reason
     assert not any("camera1.ez" in r for r in v.reasons)
     assert "4.00 µm and 40.0 arcsec" in text and ": within." in text
 

@@ -1,0 +1,125 @@
+"""Scheduled recalibration through Prefect's harness: each dropped campaign is calibrated exactly
+once over repeated ticks, the drift report covers every campaign, and a failed or claimed
+campaign is left for a later tick."""
+
+import asyncio
+
+import pandas as pd
+import pytest
+from prefect import flow
+
+import flows.recalibrate as recalibrate
+from tasks.campaign_plan import CampaignPlan
+from tasks.recalibration_ledger import Ledger
+from tasks.results_lake import read_table
+from tasks.simulate import write_campaign
+
+pytestmark = pytest.mark.flow
+
+# the smallest plan with which calibrate completes (2 sweep positions, 3 PIGE and 1 validation pose)
+PLAN = CampaignPlan(calibration_trials=1, images_per_trial=4, sweep_positions=2, sweep_repeats=1, pige_poses=3,
+                    validation_poses=1)
+
+
+def drop_campaign(watch, campaign_id, seed, days_later):
+    """Write a small simulated campaign in a hidden folder, its capture ``days_later`` than the
+    simulator's epoch, then rename it into view (how docs/recalibration.md asks a lab to drop one)."""
+    staging = watch / f".{campaign_id}.partial"
+    write_campaign(staging, campaign_id, seed=seed, size="small", plan=PLAN)
+    manifest = pd.read_csv(staging / "manifest.csv", dtype=str, keep_default_na=False)
+    stamps = pd.to_datetime(manifest["timestamp"], utc=True) + pd.Timedelta(days=days_later)
+    manifest["timestamp"] = stamps.dt.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+    manifest.to_csv(staging / "manifest.csv", index=False)
+    staging.rename(watch / campaign_id)
+    return watch / campaign_id
+
+
+def calibrate_runs(folder) -> list[str]:
+    """States of the Prefect flow runs of ``calibrate-campaign`` on ``folder``."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowFilter, FlowFilterName
+    from prefect.client.schemas.sorting import FlowRunSort
+
+    async def read():
+        async with get_client() as client:
+            return await client.read_flow_runs(flow_filter=FlowFilter(name=FlowFilterName(any_=["calibrate-campaign"])),
+                                               sort=FlowRunSort.START_TIME_ASC, limit=200)
+
+    return [r.state_name for r in asyncio.run(read()) if r.parameters.get("campaign") == str(folder)]
+
+
+def tick(watch, results, reports, **kw):
+    return recalibrate.recalibrate_new_campaigns(str(watch), str(results), str(reports), settle_seconds=0, **kw)
+
+
+def test_each_dropped_campaign_is_calibrated_exactly_once(prefect_harness, tmp_path):
+    watch, results, reports = tmp_path / "watch", tmp_path / "results", tmp_path / "reports"
+    watch.mkdir()
+    (watch / "broken").mkdir()
+    (watch / "broken" / "campaign.json").write_text("{not json")
+    (watch / "broken" / "manifest.csv").write_text("image_id\n")
+    w1 = drop_campaign(watch, "w1", seed=1, days_later=0)
+
+    waiting = recalibrate.recalibrate_new_campaigns(str(watch), str(results), str(reports), settle_seconds=3600)
+    assert waiting["calibrated"] == [] and waiting["waiting"] == [str(w1)] and waiting["drift"] is None
+
+    first = tick(watch, results, reports)
+    assert first["calibrated"] == ["w1"]
+    assert [(s["folder"], "not valid JSON" in s["reason"]) for s in first["skipped"]] == [(str(watch / "broken"),
+                                                                                             True)]
+    assert first["drift"]["campaigns"] == ["w1"]
+
+    w2 = drop_campaign(watch, "w2", seed=2, days_later=7)
+    second = tick(watch, results, reports)
+    assert (second["calibrated"], second["already_calibrated"]) == (["w2"], ["w1"])
+    third = tick(watch, results, reports)
+    assert (third["calibrated"], sorted(third["already_calibrated"]), third["drift"]) == ([], ["w1", "w2"], None)
+
+    # exactly once, by Prefect's records and by the ledger
+    assert calibrate_runs(w1) == ["Completed"] and calibrate_runs(w2) == ["Completed"]
+    assert sorted(r["campaign_id"] for r in Ledger.under(results).records()) == ["w1", "w2"]
+
+    # the second tick's drift report covers both campaigns, w1 (captured first) the reference
+    drift = read_table("drift", results)
+    assert set(drift.campaign_id) == {"w1", "w2"} and (drift.reference_campaign_id == "w1").all()
+    times = drift.groupby("campaign_id")["time"].first()
+    assert times["w2"] - times["w1"] == pd.Timedelta(days=7)
+    assert set(drift[drift.campaign_id == "w1"].rule) == {"reference"}
+    n_pige = len(read_table("pige", results, "w2"))
+    assert (drift.groupby("campaign_id").size() == n_pige + 5 * 6 * 3).all()  # PIGEs + 5 axes × 6 × 3 stats
+    markdown = open(second["drift"]["markdown"]).read()
+    assert "| 1 | `w1` (reference) |" in markdown and "| 2 | `w2` |" in markdown
+    assert markdown.count("](figures/") == 7  # PIGE, 5 PDGE axes, verification
+    assert second["drift"]["report"].startswith(str(reports / "drift"))
+
+
+@flow(name="fake-calibrate")
+def failing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None):
+    raise RuntimeError(f"simulated crash on {campaign}")
+
+
+@flow(name="fake-calibrate")
+def passing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None):
+    return {"report": f"{campaign}/report.html"}
+
+
+def test_failed_or_claimed_campaign_is_left_for_the_next_tick(prefect_harness, tmp_path, monkeypatch, campaign_copy):
+    watch, results, reports = tmp_path / "watch", tmp_path / "results", tmp_path / "reports"
+    watch.mkdir()
+    campaign_copy("f1").rename(watch / "f1")
+    monkeypatch.setattr(recalibrate, "calibrate_campaign", failing_calibrate)
+    state = recalibrate.recalibrate_new_campaigns(str(watch), str(results), str(reports), settle_seconds=0,
+                                                  return_state=True)
+    assert state.is_failed() and "calibration failed for f1" in state.message
+    assert Ledger.under(results).records() == []
+
+    monkeypatch.setattr(recalibrate, "calibrate_campaign", passing_calibrate)
+    with Ledger.under(results).claim("f1") as mine:  # another run is calibrating f1 right now
+        assert mine
+        busy = tick(watch, results, reports)
+    assert busy["calibrated"] == [] and Ledger.under(results).records() == []
+
+    done = tick(watch, results, reports)
+    assert done["calibrated"] == ["f1"] and done["drift"]["campaigns"] == []  # nothing in the lake: empty report
+    assert [r["report"] for r in Ledger.under(results).records()] == [f"{watch / 'f1'}/report.html"]
+    assert tick(watch, results, reports)["calibrated"] == []

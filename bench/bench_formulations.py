@@ -5,7 +5,9 @@ commands (camera 1 aimed at plate a, as the PIGE stage) and the same error model
 best of ``--repeats``. The ratios are each formulation's time over the local PoE's. Error norms
 are measured against the local PoE with all errors, which is the simulator's truth. For scale,
 the bench also prints the ideal model (no errors) against the same truth, the split of the error
-norms into PIGE-only and PDGE-only models, and what the DH projection drops per joint.
+norms into PIGE-only and PDGE-only models (both alternatives carry the PIGEs exactly: the PIGE-only
+norms are rounding), the norms with the PDGE of one axis at a time, which DH parameter carries
+each PIGE, and what the DH projection drops of each joint's PDGE.
 
     python bench/bench_formulations.py [--poses 300] [--repeats 20]
 """
@@ -19,7 +21,18 @@ import pandas as pd
 
 from tasks.campaign_plan import CampaignPlan, five_axis_poses
 from tasks.error_model import ARCSEC, UM, ErrorModel
-from tasks.formulations import LOCAL_POE, compare_formulations, dh_lost_error, dh_parameter_table, format_table5
+from tasks.formulations import (
+    DH,
+    GLOBAL_POE,
+    LOCAL_POE,
+    compare_formulations,
+    dh_lost_error,
+    dh_parameter_table,
+    dh_pige_parameters,
+    dh_tool_in_workpiece,
+    format_table5,
+    global_poe_tool_in_workpiece,
+)
 from tasks.kinematics import forward, position_orientation_error
 from tasks.machine import load_machine
 from tasks.prototype_errors import load_prototype_errors
@@ -52,14 +65,28 @@ def main() -> None:
     print("\nerror norms (µm / ″) with part of the error model only:")
     for label, em in (("PIGEs only", ErrorModel(pige=errors.pige)), ("PDGEs only", ErrorModel(pdge=errors.pdge))):
         t = compare_formulations(machine, em, cmds, repeats=1)
-        cells = "   ".join(f"{r.formulation}: {r.position_error_norm_um:.1f} / {r.orientation_error_norm_arcsec:.1f}"
+        cells = "   ".join(f"{r.formulation}: {r.position_error_norm_um:.3g} / {r.orientation_error_norm_arcsec:.3g}"
                            for r in t.itertuples(index=False))
         print(f"  {label:10s}  {cells}")
+
+    print("\nerror norms (µm / ″) with the PIGEs and the PDGE of one axis only (where each alternative loses):")
+    for axis in errors.pdge:
+        em = ErrorModel(pige=errors.pige, pdge={axis: errors.pdge[axis]})
+        truth = forward(machine, cmds, em).tool_in_workpiece()
+        cells = []
+        for name, fn in ((DH, dh_tool_in_workpiece), (GLOBAL_POE, global_poe_tool_in_workpiece)):
+            dt, dR = position_orientation_error(fn(machine, cmds, em), truth)
+            cells.append(f"{name}: {dt.mean() / UM:.3g} / {dR.mean() / ARCSEC:.3g}")
+        print(f"  PDGE of {axis}  " + "   ".join(cells))
 
     with pd.option_context("display.width", 160, "display.max_columns", 20):
         print("\nmodified DH parameters derived from the machine description (α, a: of link i-1 -> i):")
         print(dh_parameter_table(machine).to_string(index=False))
-        print("\nper joint, mean over the poses of the error the DH projection drops (first order):")
+        print("\nDH quantities that change per unit PIGE (1 µm or 1″; parameters signed, base/tool frames as norms):")
+        carriers = dh_pige_parameters(machine)
+        carriers["change"] = carriers["change"].round(4)
+        print(carriers.to_string(index=False))
+        print("\nper joint, mean over the poses of the PDGE error the DH projection drops (first order):")
         print(dh_lost_error(machine, errors, cmds).round(2).to_string(index=False))
 
 

@@ -8,26 +8,36 @@ global product of exponentials. This module builds the two alternatives on the s
 per-axis PDGE profiles) and compares them with :func:`tasks.kinematics.forward`, which is the
 simulator's truth.
 
-* **Local PoE (ours, eq. 12).** ``g_{i-1,i} = e^{t̂} e^{ξ̂_D(θ)} e^{ξ̂_I} e^{ξ̂ θ}`` per joint, every
-  error in the joint's own frame. Exact by construction.
+The two kinds of error are different objects for the alternatives. A PIGE moves its joint's axis
+line (eq. 12: ``E_I e^{ξ̂θ} E_I⁻¹ = e^{(Ad_{E_I} ξ)^ θ}``, nothing moves at home): it changes the
+joint's screw and nothing else. A line has 4 degrees of freedom for a rotary joint (2 tilts, 2
+shifts) and 2 for a prismatic one (2 tilts); a rotation about or a shift along the axis does
+nothing. Every one of the 11 PIGEs is such a line error. A PDGE is a six-component error motion
+before the joint's motion that depends on the joint's position (eq. 8): it moves every later axis.
+
+* **Local PoE (ours, eq. 12).** ``g_{i-1,i} = e^{t̂} e^{ξ̂_D(θ)} E_I e^{ξ̂ θ} E_I⁻¹`` per joint,
+  every error in the joint's own frame. Exact by construction.
 * **Denavit–Hartenberg.** Modified (Craig) DH:
   ``A_i = Rx(α_{i-1}) Tx(a_{i-1}) Rz(θ_i) Tz(d_i)``; frame i has z along joint i, x along the
-  common normal to joint i+1; frame 0 coincides with frame 1 at home. The parameters are derived
-  from the axis lines of the Machine (direction, home position). Where z_{i-1} ∥ z_i (always
-  for link 1 under Craig's frame-0 convention) Hayati's β, ``Rx(α) Tx(a) Ry(β) Rz(θ) Tz(d)``,
-  is added. Errors enter as perturbations (δα, δa, δθ, δd[, δβ]) of each joint's own link,
-  fitted to that joint's six-component error by a first-order least-squares projection
-  (rotations first, then translations). A link has four (five) parameters for six error
-  components, so two (one) components per joint are lost. :func:`dh_parameter_table` lists
-  which components each joint loses.
+  common normal to joint i+1; frame 0 coincides with frame 1 at home. Where the described axes
+  i-1 and i are parallel (always for link 1 under Craig's frame-0 convention) Hayati's β,
+  ``Rx(α) Tx(a) Ry(β) Rz(θ) Tz(d)``, is added, so that a small tilt stays a small β.
+  DH parameters *are* a description of the axis lines, so the PIGEs enter the natural way: the
+  table (and the base frame, frame 0) is derived from the axis lines moved by the PIGEs. This is
+  exact: a DH chain on the true lines with the true home pose is the true chain (see
+  :func:`dh_pige_parameters` for which parameters carry each PIGE). The PDGEs enter as
+  perturbations (δα, δa, δθ, δd[, δβ]) of each joint's own link, fitted to that joint's
+  six-component error at the pose by a first-order least-squares projection (rotations first,
+  then translations). A link has four (five) parameters for six error components, so two (one)
+  PDGE components per joint are lost. :func:`dh_parameter_table` lists which.
 * **Global PoE.** ``g = e^{ξ̂'_1 θ_1} ··· e^{ξ̂'_n θ_n} g'(0)`` with screws fixed in the base
-  frame. Every joint's error (PIGE and PDGE evaluated at the pose) perturbs only that joint's
-  own global screw, ``ξ'_i = Ad(E^g_i) ξ_i``, and the home pose,
-  ``g'(0) = E^g_1 ··· E^g_n g(0)``, where ``E^g_i = M_i E_i M_i⁻¹`` is the joint's error moved
-  to the base frame at home. This is the fixed-screw-axes assumption: an error of joint i does not
-  move the screws of the joints after it. The model is exact for one moving axis. It is wrong when
-  an earlier joint's error should tilt or shift a later screw (joint coupling: A's errors
-  move the C axis).
+  frame. A PIGE moves its own joint's screw, ``ξ'_i = Ad(M_i E_I M_i⁻¹) ξ_i`` with ``M_i`` the
+  joint's home pose, and leaves ``g(0)``: exact, later joints included (a PIGE moves no later
+  axis at home, and the product carries them through the motion). A PDGE, evaluated at the
+  pose and moved to the base frame at home, ``D^g_i = M_i D_i M_i⁻¹``, perturbs only its own
+  joint's screw, ``ξ'_i ← Ad(D^g_i) ξ'_i``, and the home pose, ``g'(0) = D^g_1 ··· D^g_n g(0)``.
+  This is the fixed-screw-axes assumption: the PDGE of joint i should also move the screws of
+  joints i+1..n (joint coupling: A's error motions move the C axis), and here it does not.
 
 Frames and units: base frame B of the Machine; mm and rad inside; commands (N, 5) are X, Y, Z
 [mm], A, C [deg] in AXIS_ORDER; every formulation returns the tip in the workpiece frame
@@ -54,7 +64,7 @@ import pandas as pd
 
 from tasks import se3
 from tasks.context import PoseContext
-from tasks.error_model import ARCSEC, PIGE_SCREWS, UM, ErrorModel, pige_joint_transforms
+from tasks.error_model import ARCSEC, PIGE_SCREWS, UM, ErrorModel, pige_joint_transforms, pige_to_internal
 from tasks.kinematics import forward, position_orientation_error
 from tasks.machine import AXIS_ORDER, Machine
 
@@ -68,10 +78,11 @@ TABLE5_COLUMNS = (
 )
 LOCAL_POE, DH, GLOBAL_POE = "local PoE (ours)", "Denavit–Hartenberg", "global PoE"
 _PARALLEL_TOL = 1e-9  # |z_{i-1} × z_i| below this: nominally parallel axes (Hayati's β)
+DH_PARAMETERS = ("alpha", "a", "theta", "d", "beta")
 
 
 # ---------------------------------------------------------------------------------------------
-# shared pieces: joint errors of eq. 12 and attachments
+# shared pieces: joint errors of eq. 12, axis lines and attachments
 # ---------------------------------------------------------------------------------------------
 
 
@@ -86,34 +97,9 @@ def _prepare(machine: Machine, commands, errors: ErrorModel | None, context: Pos
             errors.attachment_error_vectors(machine, q, context))
 
 
-def _error_transforms(joint_err: dict, pige: dict) -> dict[str, np.ndarray]:
-    """E_i = e^{ξ̂_D(θ_i)} e^{ξ̂_I}, the error factor of eq. 12 in joint i's local frame (eqs. 8–11).
-
-    (N, 4, 4) with PDGEs, (4, 4) with PIGEs only; joints without errors are absent.
-    """
-    pige_T = pige_joint_transforms(pige)
-    E = {}
-    for axis in AXIS_ORDER:
-        if axis in joint_err:
-            D = se3.error_motion(joint_err[axis])  # eq. 8
-            E[axis] = D @ pige_T[axis] if axis in pige_T else D
-        elif axis in pige_T:
-            E[axis] = pige_T[axis]
-    return E
-
-
-def _error_twists(joint_err: dict, pige: dict) -> dict[str, np.ndarray]:
-    """First-order error twist of each joint in its local frame: the PDGE six-vector plus the sum of
-    its PIGE screws, (N, 6) or (6,), mm / rad. Equals log(E_i) to first order."""
-    out: dict[str, np.ndarray] = {}
-    for name, value in pige.items():
-        if value == 0.0:
-            continue
-        axis, k = PIGE_SCREWS[name]
-        out.setdefault(axis, np.zeros(6))[k] += value
-    for axis, e in joint_err.items():
-        out[axis] = e + out[axis] if axis in out else e
-    return out
+def _pige_key(pige: dict | None) -> tuple:
+    """Hashable form of a PIGE set {name: value} (mm, rad), zeros dropped."""
+    return tuple(sorted((k, float(v)) for k, v in (pige or {}).items() if v != 0.0))
 
 
 def _attachment_in_link(machine: Machine, name: str, attachment_errors: dict) -> np.ndarray:
@@ -133,18 +119,44 @@ def _home_poses(machine: Machine, chain: tuple[str, ...]) -> list[np.ndarray]:
     return out
 
 
+def _pige_moved_homes(machine: Machine, chain: tuple[str, ...], pige: dict | None) -> list[np.ndarray]:
+    """M_i E_I (4, 4) per joint of a chain: the frame in which the joint's ideal screw ξ_i^local
+    describes its PIGE-moved axis, ``Ad(M_i E_I) ξ_i^local`` (eq. 12). M_i where it has no PIGE."""
+    E = pige_joint_transforms(dict(pige or {}))
+    return [M @ E[a] if a in E else M for a, M in zip(chain, _home_poses(machine, chain), strict=True)]
+
+
+def axis_lines(machine: Machine, chain: tuple[str, ...],
+               pige: dict | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Axis line of each joint of a chain at home, in the base frame, moved by its PIGEs.
+
+    Returns [(point (3,) mm, unit direction (3,))]. The moved line is the image of the described
+    one under M_i E_I M_i⁻¹: it passes through the origin of M_i E_I (for a rotary joint the only
+    line the motion E_I e^{ξ̂θ} E_I⁻¹ leaves fixed; for a prismatic joint only the direction counts).
+    pige: {name: value} in mm / rad (None: the described lines).
+    """
+    out = []
+    for axis, T in zip(chain, _pige_moved_homes(machine, chain, pige), strict=True):
+        d = T[:3, :3] @ np.asarray(machine.axes[axis].direction, dtype=float)
+        out.append((T[:3, 3].copy(), d / np.linalg.norm(d)))
+    return out
+
+
 class _PerMachineCache:
-    """Derived geometry per Machine object (Machine is not hashable: its fields are dicts)."""
+    """Derived geometry per Machine object and PIGE set (Machine is not hashable: its fields are
+    dicts). Keeps the last ``size`` entries."""
 
-    def __init__(self, build: Callable[[Machine], object]):
-        self.build = build
-        self.store: dict[int, tuple[Machine, object]] = {}
+    def __init__(self, build: Callable[[Machine, tuple], object], size: int = 16):
+        self.build, self.size = build, size
+        self.store: dict[tuple[int, tuple], tuple[Machine, object]] = {}
 
-    def __call__(self, machine: Machine):
-        hit = self.store.get(id(machine))
+    def __call__(self, machine: Machine, key: tuple = ()):
+        hit = self.store.get((id(machine), key))
         if hit is None or hit[0] is not machine:
-            hit = (machine, self.build(machine))
-            self.store[id(machine)] = hit
+            hit = (machine, self.build(machine, key))
+            self.store[(id(machine), key)] = hit
+            while len(self.store) > self.size:
+                self.store.pop(next(iter(self.store)))
         return hit[1]
 
 
@@ -171,12 +183,13 @@ def local_poe_tool_in_workpiece(machine: Machine, commands, errors: ErrorModel |
 class DHJoint:
     """One modified-DH link ``A_i = Rx(α_{i-1}) Tx(a_{i-1}) [Ry(β)] Rz(θ_i) Tz(d_i)``.
 
-    alpha, theta0 in rad; a, d0 in mm; theta0/d0 are the offsets the joint variable adds to
-    (θ_i = theta0 + q for a rotary joint, d_i = d0 + q for a linear one). ``frame_home``: DH frame
-    i at home in the base frame. ``dh_to_joint``: C_i, the constant pose of joint i's local-PoE
-    frame in DH frame i. ``jacobian`` (6, k): body twist of A_i per unit perturbation of
-    ``parameters``. ``error_map`` (k, 6): joint i's local-frame error twist -> the parameter
-    perturbations (first-order least squares, rotations first).
+    alpha, theta0, beta in rad; a, d0 in mm; theta0/d0 are the offsets the joint variable adds to
+    (θ_i = theta0 + q for a rotary joint, d_i = d0 + q for a linear one); beta is 0 unless a PIGE
+    tilts a nominally parallel axis. ``frame_home``: DH frame i at home in the base frame.
+    ``dh_to_joint``: C_i, the constant pose of joint i's local-PoE frame in DH frame i.
+    ``jacobian`` (6, k): body twist of A_i per unit perturbation of ``parameters``. ``error_map``
+    (k, 6): joint i's local-frame error twist -> the parameter perturbations (first-order least
+    squares, rotations first).
     """
 
     axis: str
@@ -185,6 +198,7 @@ class DHJoint:
     a: float
     theta0: float
     d0: float
+    beta: float
     hayati: bool
     frame_home: np.ndarray
     dh_to_joint: np.ndarray
@@ -193,7 +207,7 @@ class DHJoint:
 
     @property
     def parameters(self) -> tuple[str, ...]:
-        return ("alpha", "a", "theta", "d", "beta") if self.hayati else ("alpha", "a", "theta", "d")
+        return DH_PARAMETERS if self.hayati else DH_PARAMETERS[:4]
 
     def dh_error_twist(self, local_twist: np.ndarray) -> np.ndarray:
         """Joint error twist (..., 6) in its local-PoE frame -> the same error in DH frame i."""
@@ -223,10 +237,17 @@ def _closest_points(p1, z1, p2, z2):
     return p1 + z1 * (b * e - d) / den, p2 + z2 * (e - b * d) / den
 
 
-def _perpendicular(z: np.ndarray) -> np.ndarray:
-    """A unit vector perpendicular to z: the base axis least aligned with z, orthogonalised."""
-    e = np.eye(3)[np.argmin(np.abs(z))]
-    x = e - (e @ z) * z
+def _plane_crossing(p, z, o, n):
+    """Where the line (p, z) crosses the plane through o with normal n (z not ⟂ n)."""
+    return p + z * ((o - p) @ n) / (z @ n)
+
+
+def _unit_perpendicular(v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """v made perpendicular to the unit z and normalised; the base axis least aligned with z if v ∥ z."""
+    x = v - (v @ z) * z
+    if np.linalg.norm(x) <= _PARALLEL_TOL:
+        x = np.eye(3)[np.argmin(np.abs(z))]
+        x = x - (x @ z) * z
     return x / np.linalg.norm(x)
 
 
@@ -253,23 +274,23 @@ def _dh_matrix(alpha, a, theta, d, beta=None) -> np.ndarray:
     return out
 
 
-def _dh_jacobian(alpha: float, a: float, theta: float, d: float, hayati: bool) -> np.ndarray:
-    """(6, k) body twists log(A(p)⁻¹ A(p + δp)) / δp of one link at nominal (β = 0).
+def _dh_jacobian(alpha: float, a: float, theta: float, d: float, beta: float, hayati: bool) -> np.ndarray:
+    """(6, k) body twists log(A(p)⁻¹ A(p + δp)) / δp of one link at its parameters p.
 
     Columns (δα, δa, δθ, δd[, δβ]); α does not enter: each perturbation acts after Rx(α).
     """
-    z = np.array([0.0, 0.0, d])
-    G = se3.from_rotation_translation(se3.rot_z(theta), np.array([a, 0.0, 0.0])) @ se3.translation(z)  # Tx Rz Tz
-    H = se3.from_rotation_translation(se3.rot_z(theta), np.zeros(3)) @ se3.translation(z)  # Rz(θ) Tz(d)
+    H = se3.rot_y(beta) @ se3.rot_z(theta) if hayati else se3.rot_z(theta)
+    H = se3.from_rotation_translation(H, H[:, 2] * d)  # [Ry(β)] Rz(θ) Tz(d)
+    G = se3.translation(np.array([a, 0.0, 0.0])) @ H  # Tx(a) [Ry(β)] Rz(θ) Tz(d)
     unit = np.eye(6)  # (tx, ty, tz, rx, ry, rz)
     cols = [
-        se3.adjoint(se3.inverse(G)) @ unit[3],  # δα: rotation about x_{i-1}, before Tx Rz Tz
-        se3.adjoint(se3.inverse(H)) @ unit[0],  # δa: translation along x_{i-1}, before Rz Tz
+        se3.adjoint(se3.inverse(G)) @ unit[3],  # δα: rotation about x_{i-1}, before Tx [Ry] Rz Tz
+        se3.adjoint(se3.inverse(H)) @ unit[0],  # δa: translation along x_{i-1}, before [Ry] Rz Tz
         unit[5],  # δθ: rotation about z_i (commutes with Tz)
         unit[2],  # δd: translation along z_i
     ]
-    if hayati:
-        cols.append(se3.adjoint(se3.inverse(H)) @ unit[4])  # δβ: rotation about y after Tx(a) Rx(α)
+    if hayati:  # δβ: rotation about y after Tx(a) Rx(α), before Rz Tz
+        cols.append(se3.adjoint(se3.inverse(H) @ se3.from_rotation_translation(se3.rot_y(beta), np.zeros(3))) @ unit[4])
     return np.column_stack(cols)
 
 
@@ -288,80 +309,121 @@ def _projection(J: np.ndarray) -> np.ndarray:
     return P
 
 
-def _dh_chain(machine: Machine, chain: tuple[str, ...]) -> DHChain:
-    """Modified-DH description of a chain, derived from its axis lines (direction, home point)."""
-    lines = [(np.asarray(machine.axes[a].home_position_mm, float), np.asarray(machine.axes[a].direction, float))
-             for a in chain]
-    lines = [(p, z / np.linalg.norm(z)) for p, z in lines]
-    homes = _home_poses(machine, chain)
+def _dh_frames(lines: list, parallel: list[bool], x_ref: list | None) -> list[np.ndarray]:
+    """DH frames i (4, 4) at home in the base frame on the axis lines [(point, unit z)].
+
+    parallel[i]: axes i and i+1 are (nominally) parallel: frame i's x points at where axis i+1
+    crosses the plane ⟂ z_i through frame i's origin, and frame i+1 sits there (Hayati). Else x
+    is along the common normal to axis i+1 and the origin at its foot on axis i. The last axis:
+    origin where x_{i-1} meets it, x = x_{i-1}. x_ref: the described machine's x axes, whose sense
+    the common normals keep (None: the sense that points at axis i+1, so a ≥ 0).
+    """
     frames: list[np.ndarray] = []
-    o_prev = x_prev = None
+    o_prev = x_prev = z_prev = None
     for i, (p, z) in enumerate(lines):
-        # where the previous frame's x axis (the common normal) meets this axis
-        f = p if x_prev is None else _closest_points(p, z, o_prev, x_prev)[0]
-        nxt = lines[i + 1] if i + 1 < len(lines) else None
-        if nxt is not None and np.linalg.norm(np.cross(z, nxt[1])) > _PARALLEL_TOL:
-            o, o_next = _closest_points(p, z, *nxt)
-            x = np.cross(z, nxt[1]) if np.linalg.norm(o_next - o) <= _PARALLEL_TOL else o_next - o
-            x /= np.linalg.norm(x)  # along the common normal, towards the next axis (a ≥ 0)
-        else:  # parallel to the next axis, or the last axis: origin where x_{i-1} meets the axis
+        # where the previous frame's x axis meets this axis
+        if x_prev is None:
+            f = p
+        elif parallel[i - 1]:
+            f = _plane_crossing(p, z, o_prev, z_prev)
+        else:
+            f = _closest_points(p, z, o_prev, x_prev)[0]
+        if i + 1 < len(lines) and not parallel[i]:
+            pn, zn = lines[i + 1]
+            o, o_next = _closest_points(p, z, pn, zn)
+            x = np.cross(z, zn)
+            x /= np.linalg.norm(x)
+            sense = (x @ x_ref[i]) if x_ref is not None else (o_next - o) @ x
+            x = -x if sense < 0 else x
+        else:
             o = f
-            w = (nxt[0] - o) if nxt is not None else np.zeros(3)
-            w = w - (w @ z) * z
-            if np.linalg.norm(w) > _PARALLEL_TOL:
-                x = w / np.linalg.norm(w)
-            else:
-                x = x_prev if x_prev is not None else _perpendicular(z)
+            x = _plane_crossing(*lines[i + 1], o, z) - o if i + 1 < len(lines) else np.zeros(3)
+            if np.linalg.norm(x) <= _PARALLEL_TOL:
+                x = x_prev if x_prev is not None else np.zeros(3)
+            x = _unit_perpendicular(x, z)
         frames.append(se3.from_rotation_translation(np.column_stack([x, np.cross(z, x), z]), o))
-        o_prev, x_prev = o, x
+        o_prev, x_prev, z_prev = o, x, z
+    return frames
+
+
+def _dh_link(T: np.ndarray, hayati: bool) -> tuple[float, float, float, float, float]:
+    """(α, a, θ, d, β) of a link transform T = F_{i-1}⁻¹ F_i (rad, mm); β = 0 without Hayati."""
+    R, t = T[:3, :3], T[:3, 3]
+    alpha, theta = np.arctan2(-R[1, 2], R[2, 2]), np.arctan2(-R[0, 1], R[0, 0])
+    if hayati:  # R = Rx(α) Ry(β) Rz(θ); t = a x + d z_i
+        beta = np.arctan2(R[0, 2], np.hypot(R[1, 2], R[2, 2]))
+        (a, d), *_ = np.linalg.lstsq(np.column_stack([np.eye(3)[0], R[:, 2]]), t, rcond=None)
+    else:
+        beta, a, d = 0.0, t[0], -np.sin(alpha) * t[1] + np.cos(alpha) * t[2]
+    return float(alpha), float(a), float(theta), float(d), float(beta)
+
+
+def _dh_chain(machine: Machine, chain: tuple[str, ...], pige: tuple = ()) -> DHChain:
+    """Modified-DH description of a chain, derived from its axis lines moved by the PIGEs.
+
+    pige: a PIGE set as (name, value) pairs (mm, rad). The topology (which links get Hayati's β,
+    the sense of each x) comes from the described lines, so a PIGE changes parameters by its own
+    order of magnitude. Local frames keep their home poses M_i (a PIGE moves nothing at home),
+    so C_i = F_i⁻¹ M_i absorbs the moved DH frames.
+    """
+    nominal = axis_lines(machine, chain)
+    parallel = [bool(np.linalg.norm(np.cross(nominal[i][1], nominal[i + 1][1])) <= _PARALLEL_TOL)
+                for i in range(len(chain) - 1)] + [False]
+    x_ref = None
+    if pige:
+        x_ref = [F[:3, 0] for F in _dh_frames(nominal, parallel, None)]
+    frames = _dh_frames(axis_lines(machine, chain, dict(pige)) if pige else nominal, parallel, x_ref)
     joints = []
-    prev_frame, prev_z = frames[0], lines[0][1]  # frame 0 = frame 1 at home (Craig)
-    for axis, F, M, (_, z) in zip(chain, frames, homes, lines, strict=True):
+    prev_frame = frames[0]  # frame 0 = frame 1 at home (Craig): link 1 is a parallel pair
+    for i, (axis, F, M) in enumerate(zip(chain, frames, _home_poses(machine, chain), strict=True)):
         T = se3.inverse(prev_frame) @ F
-        R, t = T[:3, :3], T[:3, 3]
-        alpha, theta = np.arctan2(-R[1, 2], R[2, 2]), np.arctan2(-R[0, 1], R[0, 0])
-        a, d = t[0], -np.sin(alpha) * t[1] + np.cos(alpha) * t[2]
-        if not np.allclose(_dh_matrix(alpha, a, theta, d), T, atol=1e-9):
+        hayati = i == 0 or parallel[i - 1]
+        alpha, a, theta, d, beta = _dh_link(T, hayati)
+        if not np.allclose(_dh_matrix(alpha, a, theta, d, beta if hayati else None), T, atol=1e-9):
             raise ValueError(f"axis {axis}: DH frames could not be placed (got a non-DH link transform)")
-        hayati = bool(np.linalg.norm(np.cross(prev_z, z)) <= _PARALLEL_TOL)
-        J = _dh_jacobian(alpha, a, theta, d, hayati)
+        J = _dh_jacobian(alpha, a, theta, d, beta, hayati)
         C = se3.inverse(F) @ M
-        joints.append(DHJoint(axis=axis, prismatic=not machine.axes[axis].is_rotary, alpha=float(alpha), a=float(a),
-                              theta0=float(theta), d0=float(d), hayati=hayati, frame_home=F, dh_to_joint=C,
+        joints.append(DHJoint(axis=axis, prismatic=not machine.axes[axis].is_rotary, alpha=alpha, a=a,
+                              theta0=theta, d0=d, beta=beta, hayati=hayati, frame_home=F, dh_to_joint=C,
                               jacobian=J, error_map=_projection(J) @ se3.adjoint(C)))
-        prev_frame, prev_z = F, z
+        prev_frame = F
     return DHChain(axes=tuple(chain), joints=tuple(joints), base=frames[0])
 
 
-def _build_dh(machine: Machine) -> dict[str, DHChain]:
-    return {"tool": _dh_chain(machine, machine.tool_chain), "workpiece": _dh_chain(machine, machine.workpiece_chain)}
+def _build_dh(machine: Machine, pige: tuple) -> dict[str, DHChain]:
+    return {"tool": _dh_chain(machine, machine.tool_chain, pige),
+            "workpiece": _dh_chain(machine, machine.workpiece_chain, pige)}
 
 
 _DH_CACHE = _PerMachineCache(_build_dh)
 
 
-def dh_model(machine: Machine) -> dict[str, DHChain]:
-    """{'tool': DHChain, 'workpiece': DHChain} of a Machine, derived once per Machine object."""
-    return _DH_CACHE(machine)
+def dh_model(machine: Machine, pige: dict | None = None) -> dict[str, DHChain]:
+    """{'tool': DHChain, 'workpiece': DHChain} on the axis lines moved by ``pige`` ({name: value},
+    mm / rad; None: the described machine). Derived once per Machine object and PIGE set."""
+    return _DH_CACHE(machine, _pige_key(pige))
 
 
-def _dh_attachment_pose(machine: Machine, name: str, q: np.ndarray, twists: dict, att_err: dict) -> np.ndarray:
-    """Base-frame pose (N, 4, 4) of an attachment through the DH chain with projected errors."""
+def _dh_attachment_pose(machine: Machine, name: str, q: np.ndarray, pige: dict, twists: dict,
+                        att_err: dict) -> np.ndarray:
+    """Base-frame pose (N, 4, 4) of an attachment through the DH chain of the PIGE-moved lines,
+    with the PDGE twists projected on each joint's own link."""
     link = machine.attachments[name].link
     axes = machine.parents(link)  # base -> link, empty for "base"
     T = np.broadcast_to(np.eye(4), (q.shape[0], 4, 4))
     if not axes:
         return T @ _attachment_in_link(machine, name, att_err)
-    chain = dh_model(machine)["tool" if axes[0] in machine.tool_chain else "workpiece"]
+    chain = dh_model(machine, pige)["tool" if axes[0] in machine.tool_chain else "workpiece"]
     T = T @ chain.base
     for j in chain.joints[: len(axes)]:
         qi = q[:, AXIS_ORDER.index(j.axis)]
-        alpha, a, theta, d, beta = j.alpha, j.a, j.theta0, j.d0, None
+        alpha, a, theta, d = j.alpha, j.a, j.theta0, j.d0
+        beta = j.beta if j.hayati and j.beta != 0.0 else None
         if j.axis in twists:
             dp = twists[j.axis] @ j.error_map.T  # first-order projection on the DH parameters
             alpha, a, theta, d = alpha + dp[..., 0], a + dp[..., 1], theta + dp[..., 2], d + dp[..., 3]
             if j.hayati:
-                beta = dp[..., 4]
+                beta = j.beta + dp[..., 4]
         if j.prismatic:
             d = d + qi
         else:
@@ -372,30 +434,31 @@ def _dh_attachment_pose(machine: Machine, name: str, q: np.ndarray, twists: dict
 
 def dh_tool_in_workpiece(machine: Machine, commands, errors: ErrorModel | None = None,
                          context: PoseContext | None = None) -> np.ndarray:
-    """Tip in the workpiece frame by modified DH (Craig) with Hayati's β, errors projected.
+    """Tip in the workpiece frame by modified DH (Craig) with Hayati's β.
 
-    commands: (N, 5) X, Y, Z [mm], A, C [deg]. Each joint's error twist (its PDGE six-vector of
-    eq. 8 evaluated at the pose plus its PIGE screws of eqs. 9–11, in its local frame) is mapped
-    to first order onto its own link's (δα, δa, δθ, δd[, δβ]); the link transforms are then
-    evaluated exactly with the perturbed parameters. Returns g_tw (N, 4, 4), mm.
+    commands: (N, 5) X, Y, Z [mm], A, C [deg]. The DH table is derived from the axis lines moved
+    by the PIGEs (eqs. 9–12; exact). Each joint's PDGE six-vector (eq. 8, at the pose, local
+    frame; log(e^{ξ̂_D}) = ξ_D to first order) is mapped to first order onto its own link's
+    (δα, δa, δθ, δd[, δβ]); the link transforms are then evaluated exactly with the perturbed
+    parameters. Returns g_tw (N, 4, 4), mm.
     """
     q, joint_err, pige, att_err = _prepare(machine, commands, errors, context)
-    twists = _error_twists(joint_err, pige)
-    g_bt = _dh_attachment_pose(machine, machine.tip, q, twists, att_err)
-    g_bw = _dh_attachment_pose(machine, machine.workpiece, q, twists, att_err)
+    g_bt = _dh_attachment_pose(machine, machine.tip, q, pige, joint_err, att_err)
+    g_bw = _dh_attachment_pose(machine, machine.workpiece, q, pige, joint_err, att_err)
     return se3.inverse(g_bw) @ g_bt  # eq. 12: g_tw = g_bw⁻¹ g_bt
 
 
-def dh_parameter_table(machine: Machine) -> pd.DataFrame:
-    """Modified DH parameters of both chains, with what each joint's error loses.
+def dh_parameter_table(machine: Machine, pige: dict | None = None) -> pd.DataFrame:
+    """Modified DH parameters of both chains, with what each joint's PDGE loses.
 
     One row per joint: alpha_deg (α_{i-1}), a_mm (a_{i-1}), theta_deg (θ_i offset), d_mm (d_i
-    offset), the joint variable, whether Hayati's β is used, and the base-frame directions of the
-    rotation and translation components of that joint's error that its link cannot represent
-    (at home; they turn with the preceding joints).
+    offset), beta_deg (Hayati's β, 0 without it), the joint variable, whether Hayati's β is used,
+    and the base-frame directions of the rotation and translation components of that joint's
+    error motion that its link cannot represent (at home; they turn with the preceding joints).
+    pige: {name: value} (mm / rad) to tabulate the lines moved by these PIGEs (None: as described).
     """
     rows = []
-    for name, chain in dh_model(machine).items():
+    for name, chain in dh_model(machine, pige).items():
         for j in chain.joints:
             R = j.frame_home[:3, :3]
             rot = [0, 2] + ([4] if j.hayati else [])
@@ -404,12 +467,13 @@ def dh_parameter_table(machine: Machine) -> pd.DataFrame:
             rows.append({
                 "chain": name, "joint": j.axis, "variable": "d" if j.prismatic else "θ",
                 "alpha_deg": np.degrees(j.alpha), "a_mm": j.a, "theta_deg": np.degrees(j.theta0), "d_mm": j.d0,
-                "hayati_beta": j.hayati,
+                "beta_deg": np.degrees(j.beta), "hayati_beta": j.hayati,
                 "lost_rotation_about": _fmt_dirs(lost_r, R), "lost_translation_along": _fmt_dirs(lost_t, R),
             })
     df = pd.DataFrame(rows)
-    for c in ("alpha_deg", "a_mm", "theta_deg", "d_mm"):
-        df[c] = df[c].round(9) + 0.0  # no "-0.0"
+    if pige is None:
+        for c in ("alpha_deg", "a_mm", "theta_deg", "d_mm", "beta_deg"):
+            df[c] = df[c].round(9) + 0.0  # no "-0.0"
     return df
 
 
@@ -429,36 +493,52 @@ def _fmt_dirs(basis: np.ndarray, R: np.ndarray) -> str:
     return ", ".join(out) or "-"
 
 
-def dh_pige_loss(machine: Machine) -> pd.DataFrame:
-    """For each PIGE, the fraction (0..1) of its unit error that the DH projection loses.
+def dh_pige_parameters(machine: Machine, tol: float = 1e-6) -> pd.DataFrame:
+    """Which DH parameters carry each PIGE: the change of the derived table per unit PIGE.
 
-    0: represented exactly by its joint's DH perturbations; 1: dropped entirely.
+    Each PIGE alone at 1 µm or 1″ moves its axis line; the table is derived again from the moved
+    lines. One row per changed quantity: pige, chain, link (the joint whose row changes, or
+    "base" for frame 0, "tool" for C_n, the last DH frame -> the last joint's local frame, which
+    carries the tip or the workpiece), parameter (alpha, a, theta, d, beta; for base and tool
+    rotation_arcsec / translation_um, the norms of log(F_0⁻¹ F_0') or log(C_n⁻¹ C_n')), change
+    (arcsec or µm per unit of the PIGE: signed for parameters, a norm for base and tool).
+    Changes below ``tol`` (a second-order size for a unit PIGE) are left out.
     """
-    joints = {j.axis: j for chain in dh_model(machine).values() for j in chain.joints}
+    nominal = dh_model(machine)
     rows = []
-    for name, (axis, k) in PIGE_SCREWS.items():
-        e = np.zeros(6)
-        e[k] = 1.0
-        j = joints[axis]
-        lost = j.lost_twist(e)
-        rows.append({"pige": name, "joint": axis, "lost_fraction": float(np.linalg.norm(lost) /
-                                                                         np.linalg.norm(j.dh_error_twist(e)))})
-    return pd.DataFrame(rows)
+    for name in PIGE_SCREWS:
+        moved = dh_model(machine, {name: pige_to_internal(name, 1.0)})
+        for chain_name, chain in moved.items():
+            ref = nominal[chain_name]
+            dF = se3.log(se3.inverse(ref.base) @ chain.base)
+            changes = [("base", "translation_um", np.linalg.norm(dF[:3]) / UM),
+                       ("base", "rotation_arcsec", np.linalg.norm(dF[3:]) / ARCSEC)]
+            for j, j0 in zip(chain.joints, ref.joints, strict=True):
+                for p in j.parameters:
+                    attr = {"theta": "theta0", "d": "d0"}.get(p, p)
+                    scale = ARCSEC if p in ("alpha", "theta", "beta") else UM
+                    changes.append((j.axis, p, (getattr(j, attr) - getattr(j0, attr)) / scale))
+            dC = se3.log(se3.inverse(ref.joints[-1].dh_to_joint) @ chain.joints[-1].dh_to_joint)
+            changes += [("tool", "translation_um", np.linalg.norm(dC[:3]) / UM),
+                        ("tool", "rotation_arcsec", np.linalg.norm(dC[3:]) / ARCSEC)]
+            rows += [{"pige": name, "joint": PIGE_SCREWS[name][0], "chain": chain_name, "link": link,
+                      "parameter": p, "change": float(c)} for link, p, c in changes if abs(c) > tol]
+    return pd.DataFrame(rows, columns=["pige", "joint", "chain", "link", "parameter", "change"])
 
 
 def dh_lost_error(machine: Machine, errors: ErrorModel, commands) -> pd.DataFrame:
-    """Per joint, mean over the poses of the error the DH projection drops (first order).
+    """Per joint, mean over the poses of the PDGE error the DH projection drops (first order).
 
-    Columns: joint, lost_translation_um (‖v‖ of the lost twist in DH frame i), lost_rotation_arcsec
-    (‖ω‖), of_translation_um / of_rotation_arcsec (the same norms of the joint's whole error).
+    The PIGEs are carried exactly by the table (:func:`dh_model` on the moved lines) and do not
+    appear. Columns: joint, lost_translation_um (‖v‖ of the lost twist in DH frame i),
+    lost_rotation_arcsec (‖ω‖), of_translation_um / of_rotation_arcsec (the same norms of the
+    joint's whole PDGE error motion).
     """
     q, joint_err, pige, _ = _prepare(machine, commands, errors, None)
-    twists = _error_twists(joint_err, pige)
     rows = []
-    for chain in dh_model(machine).values():
+    for chain in dh_model(machine, pige).values():
         for j in chain.joints:
-            e = twists.get(j.axis, np.zeros(6))
-            e = np.broadcast_to(e, (q.shape[0], 6))
+            e = np.broadcast_to(joint_err.get(j.axis, np.zeros(6)), (q.shape[0], 6))
             lost, whole = j.lost_twist(e), j.dh_error_twist(e)
             rows.append({
                 "joint": j.axis,
@@ -477,8 +557,9 @@ def dh_lost_error(machine: Machine, errors: ErrorModel, commands) -> pd.DataFram
 
 @dataclass(frozen=True)
 class GlobalChain:
-    """Global PoE data of a chain: home poses M_i (n, 4, 4), their inverses and the ideal unit
-    screws ξ_i = Ad(M_i) ξ_i^local (n, 6), all in the base frame at home."""
+    """Global PoE data of a chain: home poses M_i (n, 4, 4), their inverses and the unit screws
+    ξ_i = Ad(M_i E_I) ξ_i^local (n, 6) of the axis lines moved by the PIGEs, all in the base frame
+    at home (eq. 12: E_I e^{ξ̂θ} E_I⁻¹ = e^{(Ad_{E_I} ξ)^ θ})."""
 
     axes: tuple[str, ...]
     home: np.ndarray
@@ -486,11 +567,12 @@ class GlobalChain:
     screws: np.ndarray
 
 
-def _build_global(machine: Machine) -> dict[str, GlobalChain]:
+def _build_global(machine: Machine, pige: tuple) -> dict[str, GlobalChain]:
     out = {}
     for name, chain in (("tool", machine.tool_chain), ("workpiece", machine.workpiece_chain)):
         M = np.stack(_home_poses(machine, chain))
-        screws = np.stack([se3.adjoint(Mi) @ machine.axes[a].unit_twist for a, Mi in zip(chain, M, strict=True)])
+        moved = _pige_moved_homes(machine, chain, dict(pige))
+        screws = np.stack([se3.adjoint(T) @ machine.axes[a].unit_twist for a, T in zip(chain, moved, strict=True)])
         out[name] = GlobalChain(tuple(chain), M, se3.inverse(M), screws)
     return out
 
@@ -498,27 +580,31 @@ def _build_global(machine: Machine) -> dict[str, GlobalChain]:
 _GLOBAL_CACHE = _PerMachineCache(_build_global)
 
 
-def global_screws(machine: Machine) -> dict[str, GlobalChain]:
-    """{'tool': GlobalChain, 'workpiece': GlobalChain} of a Machine, derived once per Machine object."""
-    return _GLOBAL_CACHE(machine)
+def global_screws(machine: Machine, pige: dict | None = None) -> dict[str, GlobalChain]:
+    """{'tool': GlobalChain, 'workpiece': GlobalChain} with the screws moved by ``pige`` ({name:
+    value}, mm / rad; None: as described). Derived once per Machine object and PIGE set."""
+    return _GLOBAL_CACHE(machine, _pige_key(pige))
 
 
-def _global_attachment_pose(machine: Machine, name: str, q: np.ndarray, E: dict, att_err: dict) -> np.ndarray:
-    """Base-frame pose (N, 4, 4): g = e^{ξ̂'_1 θ_1} ··· e^{ξ̂'_k θ_k} g'(0) (global PoE)."""
+def _global_attachment_pose(machine: Machine, name: str, q: np.ndarray, pige: dict, D: dict,
+                            att_err: dict) -> np.ndarray:
+    """Base-frame pose (N, 4, 4): g = e^{ξ̂'_1 θ_1} ··· e^{ξ̂'_k θ_k} g'(0) (global PoE).
+
+    D: {axis: (N, 4, 4)} PDGE error motions e^{ξ̂_D} in the joint's local frame."""
     link = machine.attachments[name].link
     axes = machine.parents(link)  # base -> link, empty for "base"
     n = q.shape[0]
     T = np.broadcast_to(np.eye(4), (n, 4, 4))
     if not axes:
         return T @ _attachment_in_link(machine, name, att_err)
-    chain = global_screws(machine)["tool" if axes[0] in machine.tool_chain else "workpiece"]
-    home_error = None  # E^g_1 ··· E^g_k, the perturbation of g(0)
+    chain = global_screws(machine, pige)["tool" if axes[0] in machine.tool_chain else "workpiece"]
+    home_error = None  # D^g_1 ··· D^g_k, the perturbation of g(0)
     for i, axis in enumerate(axes):
-        xi = chain.screws[i]
-        if axis in E:
-            Eg = chain.home[i] @ E[axis] @ chain.home_inv[i]  # joint error moved to the base frame at home
-            xi = xi @ np.swapaxes(se3.adjoint(Eg), -1, -2)  # ξ'_i = Ad(E^g_i) ξ_i: only its own error
-            home_error = Eg if home_error is None else home_error @ Eg
+        xi = chain.screws[i]  # already moved by the joint's PIGEs
+        if axis in D:
+            Dg = chain.home[i] @ D[axis] @ chain.home_inv[i]  # PDGE moved to the base frame at home
+            xi = xi @ np.swapaxes(se3.adjoint(Dg), -1, -2)  # ξ'_i = Ad(D^g_i) ξ_i: only its own error
+            home_error = Dg if home_error is None else home_error @ Dg
         T = T @ se3.exp(xi * q[:, AXIS_ORDER.index(axis), None])
     g0 = chain.home[len(axes) - 1] @ _attachment_in_link(machine, name, att_err)
     return T @ (g0 if home_error is None else home_error @ g0)
@@ -528,15 +614,15 @@ def global_poe_tool_in_workpiece(machine: Machine, commands, errors: ErrorModel 
                                  context: PoseContext | None = None) -> np.ndarray:
     """Tip in the workpiece frame by the global PoE with fixed global screw axes.
 
-    commands: (N, 5) X, Y, Z [mm], A, C [deg]. Each joint's error E_i (eqs. 8–11 at the pose) is
-    moved to the base frame at home, E^g_i = M_i E_i M_i⁻¹. It perturbs only that joint's global
-    screw (ξ'_i = Ad(E^g_i) ξ_i) and the home pose (g'(0) = E^g_1 ··· E^g_n g(0)).
-    Returns g_tw (N, 4, 4), mm.
+    commands: (N, 5) X, Y, Z [mm], A, C [deg]. The PIGEs move their own joint's screw,
+    ξ_i = Ad(M_i E_I M_i⁻¹) ξ_i (eqs. 9–12; exact). Each joint's PDGE D_i (eq. 8, at the pose) is
+    moved to the base frame at home, D^g_i = M_i D_i M_i⁻¹, and perturbs only that joint's screw
+    (ξ'_i = Ad(D^g_i) ξ_i) and the home pose (g'(0) = D^g_1 ··· D^g_n g(0)). Returns g_tw (N, 4, 4), mm.
     """
     q, joint_err, pige, att_err = _prepare(machine, commands, errors, context)
-    E = _error_transforms(joint_err, pige)
-    g_bt = _global_attachment_pose(machine, machine.tip, q, E, att_err)
-    g_bw = _global_attachment_pose(machine, machine.workpiece, q, E, att_err)
+    D = {axis: se3.error_motion(e) for axis, e in joint_err.items()}  # eq. 8
+    g_bt = _global_attachment_pose(machine, machine.tip, q, pige, D, att_err)
+    g_bw = _global_attachment_pose(machine, machine.workpiece, q, pige, D, att_err)
     return se3.inverse(g_bw) @ g_bt
 
 
@@ -548,9 +634,11 @@ FORMULATIONS: tuple[tuple[str, Callable, str], ...] = (
     (LOCAL_POE, local_poe_tool_in_workpiece,
      "eq. 12: errors in each joint's local frame; the simulator's truth"),
     (DH, dh_tool_in_workpiece,
-     "modified DH + Hayati β; each joint's 6 error components projected on its 4 (5) link parameters"),
+     "modified DH + Hayati β on the PIGE-moved axis lines (exact); each joint's 6 PDGE components "
+     "projected on its 4 (5) link parameters"),
     (GLOBAL_POE, global_poe_tool_in_workpiece,
-     "fixed global screws, each perturbed by its own joint's error; coupling to later axes ignored"),
+     "fixed global screws moved by their own PIGEs (exact); each PDGE perturbs only its own screw: "
+     "coupling to later axes ignored"),
 )
 
 

@@ -137,7 +137,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                       verification=verification, camera_calibration=calibration,
                       detector_comparison=_read_optional("detector_comparison", root, campaign_id),
                       formulations=formulations, identifiability=null_space_sentences(result.pige.specs, fit),
-                      provenance={**provenance, "tables": tables}, simulated=simulated)
+                      provenance={**provenance, "tables": tables}, simulated=simulated,
+                      images=images, compensation=compensation_table(ids, commands, compensated))
     paths = report_task(out_dir, data)
     summary_rows = verification.groupby(["phase", "source"])[["position_um", "orientation_arcsec"]].mean()
     logger.info(f"verification means:\n{summary_rows.round(2).to_string()}")

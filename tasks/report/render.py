@@ -30,6 +30,7 @@ import pandas as pd
 
 from tasks.report import figures as F
 from tasks.report import tables as T
+from tasks.report.data import write_report_data
 from tasks.truth_stats import SEED_AFTER, SEED_BEFORE
 
 if TYPE_CHECKING:
@@ -62,6 +63,8 @@ class ReportData:
     extra_figures: list[tuple[str, Figure]] = field(default_factory=list)
     provenance: dict = field(default_factory=dict)
     simulated: bool = False
+    compensation: pd.DataFrame | None = None  # only written to data/ (tasks/report/data.py), not shown
+    images: pd.DataFrame | None = None        # the images table: the input hashes in data/inputs.parquet
 
 
 # --------------------------------------------------------------------------------------------
@@ -344,7 +347,8 @@ def _check_target(out_dir: Path) -> None:
 
 def write_report(out_dir: Path, data: ReportData) -> dict[str, Path]:
     """Write ``out_dir/report.md``, ``out_dir/index.html`` (self-contained: PNGs embedded as
-    base64 data URIs, CSS inline) and ``out_dir/figures/*.png`` (150 dpi).
+    base64 data URIs, CSS inline), ``out_dir/figures/*.png`` (150 dpi) and ``out_dir/data/``
+    (the numbers and parameters, for ``fivecal reproduce``: tasks/report/data.py).
 
     Atomic: the report is built in a sibling temporary folder, then swapped in by rename
     (``tasks.results_lake``'s exchange), so ``out_dir`` is either absent/the old report or the
@@ -361,6 +365,7 @@ def write_report(out_dir: Path, data: ReportData) -> dict[str, Path]:
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-"))
     try:
+        write_report_data(staging, data)
         figures_dir = staging / "figures"
         figures_dir.mkdir()
         markdown = build_markdown(data, figures_dir)

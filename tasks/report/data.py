@@ -1,0 +1,79 @@
+"""The report's numbers in machine-readable form, for ``fivecal reproduce`` (science only, no Prefect).
+
+A report folder holds::
+
+    data/<table>.parquet   pdge, pige, compensation, verification, formulations: the frames the report
+                           shows, with the lake table's columns (docs/results-schema.md); each file's
+                           ``fivecal`` metadata has table, campaign_id, schema_version
+    data/inputs.parquet    the images table's manifest_row, image_id, path, content_sha256, status
+                           (when the report was given the images table)
+    data/parameters.json   campaign_id, run, simulated, the provenance (campaign folder, detector,
+                           fivecal version, input hashes, ...), sha256 of campaign.json and
+                           manifest.csv, and per table its rows and schema version
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from tasks import lake_schema
+from tasks.campaign_io import MANIFEST_FILE, METADATA_FILE, atomic_write_parquet, atomic_write_text
+
+if TYPE_CHECKING:
+    from tasks.report.render import ReportData
+
+DATA_DIR = "data"
+PARAMETERS_FILE = "parameters.json"
+INPUTS_FILE = "inputs.parquet"
+REPORT_TABLES = ("pdge", "pige", "compensation", "verification", "formulations")
+INPUT_COLUMNS = ("manifest_row", "image_id", "path", "content_sha256", "status")
+CAMPAIGN_FILES = (METADATA_FILE, MANIFEST_FILE)
+FORMAT_VERSION = 1
+
+
+def campaign_file_hashes(folder: str | Path | None) -> dict[str, str | None]:
+    """{file name: sha256 hex, or None if unreadable} of campaign.json and manifest.csv in ``folder``."""
+    from tasks.ingest import file_sha256
+
+    out: dict[str, str | None] = {}
+    for name in CAMPAIGN_FILES:
+        try:
+            out[name] = file_sha256(Path(folder) / name) if folder else None
+        except OSError:
+            out[name] = None
+    return out
+
+
+def write_report_data(folder: Path, data: ReportData) -> dict[str, Path]:
+    """Write ``folder/data/``: one Parquet file per table of :data:`REPORT_TABLES` that ``data``
+    carries (units and frames as in the lake), inputs.parquet when ``data.images`` is given, and
+    parameters.json. Returns {name: path} of the files written."""
+    import fivecal
+
+    out = Path(folder) / DATA_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Path] = {}
+    tables = {}
+    for name in REPORT_TABLES:
+        df = getattr(data, name)
+        if df is None:
+            continue
+        df = lake_schema.conform(name, df.drop(columns=lake_schema.PARTITION, errors="ignore"))
+        meta = {"table": name, "campaign_id": data.campaign_id, "schema_version": lake_schema.schema_version(name)}
+        atomic_write_parquet(out / f"{name}.parquet", df, meta)
+        written[name] = out / f"{name}.parquet"
+        tables[name] = {"rows": len(df), "schema_version": meta["schema_version"]}
+    if data.images is not None:
+        atomic_write_parquet(out / INPUTS_FILE, data.images[[c for c in INPUT_COLUMNS if c in data.images.columns]],
+                             {"campaign_id": data.campaign_id})
+        written["inputs"] = out / INPUTS_FILE
+    parameters = {"format_version": FORMAT_VERSION, "campaign_id": data.campaign_id, "run": data.run,
+                  "simulated": data.simulated, "written_by_fivecal": fivecal.__version__,
+                  "provenance": data.provenance,
+                  "campaign_files_sha256": campaign_file_hashes(data.provenance.get("campaign")),
+                  "tables": tables}
+    atomic_write_text(out / PARAMETERS_FILE, json.dumps(parameters, indent=1, sort_keys=True, default=str))
+    written["parameters"] = out / PARAMETERS_FILE
+    return written

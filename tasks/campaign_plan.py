@@ -8,7 +8,8 @@ Stages:
 - ``pdge``: per axis, ``positions`` positions × ``repeats`` repeats, centred on home so that the
   sweep includes zero: X/Y in 1 mm and A in 1° steps as in the seed; Z in 0.2 mm steps (the
   seed's 0.1 mm spans only ±2.5 mm, less than the five-axis poses use) and C over its whole
-  stroke (360°/positions apart), because the five-axis poses turn C through all of it and a
+  stroke, both ends included (``positions`` + 1 when even, so that home is one of them),
+  because the five-axis poses turn C through all of it and a
   PDGE is only known where it was swept. Repeats alternate direction (forward, backward, ...),
   so reversal errors show. Camera 1 measures X/Y/Z/C on plate a, camera 2 measures A on plate b.
 - ``pige``: five-axis poses (A within ±``max_tilt_deg``, C over its stroke) with camera 1 aimed
@@ -78,12 +79,16 @@ def aim_camera(machine: Machine, camera: str, rotary_deg: np.ndarray, offsets_mm
 
 
 def sweep_positions(machine: Machine, axis: str, positions: int) -> np.ndarray:
-    """The commanded positions (mm or deg) of ``axis``' PDGE sweep, centred on home."""
-    k = np.arange(positions) - positions // 2
+    """The commanded positions (mm or deg) of ``axis``' PDGE sweep, centred on home.
+
+    An axis without a step in SWEEP_STEP (C) is swept over its whole stroke, both ends included
+    (a rotary axis with a limited stroke is not periodic: its error at +180° need not equal the one
+    at −180°), in an even number of steps so that home is among them: ``positions`` rounded up to
+    an odd count."""
     if axis in SWEEP_STEP:
-        return k * SWEEP_STEP[axis]
+        return (np.arange(positions) - positions // 2) * SWEEP_STEP[axis]
     lo, hi = machine.axes[axis].stroke
-    return k * (hi - lo) / positions
+    return np.linspace(lo, hi, positions + 1 - positions % 2)
 
 
 def _sweep(machine: Machine, axis: str, plan: CampaignPlan) -> pd.DataFrame:

@@ -3,6 +3,11 @@
 The desired tip pose of a command is where the *nominal* machine would put the tip. The
 compensated command is the one at which the *identified* machine puts it there: position and tool
 direction (five axes fix five degrees of freedom; the rotation about the tool axis is left free).
+Five axes cannot fix all three rotations of the tip: the compensation places the tip exactly (X/Y/Z)
+and chooses A and C to minimise the whole orientation error, the rotation about the tool axis
+included (the seed's orientation error counts it). Near the singular pose (tool along C at A ≈ 0)
+that also stops a tilt of the tool from being "corrected" by a large turn of C that spins the
+tool about its axis.
 """
 
 from __future__ import annotations
@@ -21,10 +26,16 @@ def desired_tip_poses(machine: Machine, commands: np.ndarray) -> np.ndarray:
     return forward(machine, commands).tool_in_workpiece()
 
 
+SPIN_WEIGHT = 1.0  # rotation about the tool axis weighs like the tool direction
+ORIENTATION_WEIGHT_MM = 1.0  # mm per rad: orientation settles among A and C, X/Y/Z place the tip
+
+
 def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray) -> np.ndarray:
-    """(N, 5) compensated commands (mm, deg) reaching the nominal tip poses of ``commands`` on ``model``."""
+    """(N, 5) compensated commands (mm, deg) reaching the nominal tip poses of ``commands`` on
+    ``model``, as near the commands as the singular poses require."""
     desired = desired_tip_poses(machine, commands)
-    return inverse(machine, desired[:, :3, 3], desired[:, :3, 2], model, initial=commands)
+    return inverse(machine, desired[:, :3, 3], desired[:, :3, 2], model, initial=commands,
+                   spin_weight=SPIN_WEIGHT, tool_x_axis=desired[:, :3, 0], direction_weight=ORIENTATION_WEIGHT_MM)
 
 
 def compensation_table(image_ids, commands: np.ndarray, compensated: np.ndarray) -> pd.DataFrame:

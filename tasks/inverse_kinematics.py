@@ -20,10 +20,15 @@ DIRECTION_WEIGHT_MM = 100.0  # 1 rad of tool direction weighs like 100 mm of pos
 _STEP = np.array([1e-4, 1e-4, 1e-4, 1e-5, 1e-5])  # finite-difference steps (mm, mm, mm, deg, deg)
 
 
-def _tip_state(machine, commands, errors, context):
-    """(N, 6): tip position (mm) and tool direction × DIRECTION_WEIGHT_MM, workpiece frame."""
+def _tip_state(machine, commands, errors, context, spin_weight: float = 0.0,
+               direction_weight: float = DIRECTION_WEIGHT_MM):
+    """(N, 6) or (N, 9): tip position (mm), tool direction × direction_weight (mm per unit) and,
+    with a spin weight, the tip frame's x axis × spin_weight × direction_weight; workpiece frame."""
     g = forward(machine, commands, errors, context).tool_in_workpiece()
-    return np.concatenate([g[:, :3, 3], DIRECTION_WEIGHT_MM * g[:, :3, 2]], axis=1)
+    parts = [g[:, :3, 3], direction_weight * g[:, :3, 2]]
+    if spin_weight:
+        parts.append(spin_weight * direction_weight * g[:, :3, 0])
+    return np.concatenate(parts, axis=1)
 
 
 def _rotary_start(machine: Machine, direction: np.ndarray, prefer: np.ndarray) -> np.ndarray:
@@ -55,6 +60,9 @@ def inverse(
     prefer=None,
     tol_mm: float = 1e-9,
     max_iter: int = 30,
+    spin_weight: float = 0.0,
+    tool_x_axis=None,
+    direction_weight: float = DIRECTION_WEIGHT_MM,
 ) -> np.ndarray:
     """Commands (N, 5) [mm, deg] that reach the desired tip poses.
 
@@ -63,11 +71,23 @@ def inverse(
     errors: the machine's error model (None: ideal). initial: (N, 5) start commands (default:
     grid search over the rotary axes, on the branch nearest ``prefer`` (N, 5) or (5,), default
     home). Raises ``ValueError`` for poses that do not converge.
+
+    spin_weight: w > 0 adds the rotation about the tool axis to the least squares, with weight w
+    relative to the tool direction (``tool_x_axis`` (N, 3): the desired tip x axis). Five axes
+    cannot fix it, but near the singular pose of a five-axis head (tool along C, A ≈ 0) a small
+    tilt of the tool can only be corrected by a large turn of C that spins the tool about its axis;
+    the weight stops that trade where it costs more spin than it gains tilt. No convergence error
+    is raised then (the problem is overdetermined): the caller reads what is left from the forward
+    kinematics. direction_weight (mm per unit of direction, i.e. per rad) sets how orientation
+    trades against position in that least squares; X/Y/Z can always place the tip, so a small
+    weight keeps the position exact and settles the orientation among A and C.
     """
     target_p = np.atleast_2d(np.asarray(tip_position_mm, dtype=float))
     target_d = np.atleast_2d(np.asarray(tool_direction, dtype=float))
     target_d = target_d / np.linalg.norm(target_d, axis=1, keepdims=True)
-    target = np.concatenate([target_p, DIRECTION_WEIGHT_MM * target_d], axis=1)
+    target = np.concatenate([target_p, direction_weight * target_d], axis=1)
+    if spin_weight:
+        target = np.concatenate([target, spin_weight * direction_weight * np.atleast_2d(tool_x_axis)], axis=1)
     n = target.shape[0]
     if initial is None:
         prefer = np.zeros((n, 5)) if prefer is None else np.broadcast_to(np.asarray(prefer, float), (n, 5))
@@ -76,19 +96,24 @@ def inverse(
         cmd = np.array(initial, dtype=float)
     cmd = np.atleast_2d(cmd).copy()
     for _ in range(max_iter):
-        state = _tip_state(machine, cmd, errors, context)
-        r = target - state  # (N, 6)
+        state = _tip_state(machine, cmd, errors, context, spin_weight, direction_weight)
+        r = target - state  # (N, 6) or (N, 9)
         if np.max(np.abs(r)) < tol_mm:
             break
         # Jacobian by forward differences, all 5 columns in one batched FK of 5N poses
         pert = cmd[:, None, :] + np.eye(5)[None] * _STEP  # (N, 5, 5)
         ctx5 = None if context is None else context.take(np.repeat(np.arange(n), 5))
-        s5 = _tip_state(machine, pert.reshape(-1, 5), errors, ctx5).reshape(n, 5, 6)
-        J = np.swapaxes((s5 - state[:, None, :]) / _STEP[None, :, None], 1, 2)  # (N, 6, 5)
+        s5 = _tip_state(machine, pert.reshape(-1, 5), errors, ctx5, spin_weight, direction_weight).reshape(n, 5, -1)
+        J = np.swapaxes((s5 - state[:, None, :]) / _STEP[None, :, None], 1, 2)  # (N, 6 or 9, 5)
         JtJ = np.swapaxes(J, 1, 2) @ J
         Jtr = np.einsum("nij,ni->nj", J, r)
-        cmd = cmd + np.linalg.solve(JtJ + 1e-12 * np.eye(5), Jtr[..., None])[..., 0]
-    residual = np.max(np.abs(target - _tip_state(machine, cmd, errors, context)), axis=1)
+        step = np.linalg.solve(JtJ + 1e-12 * np.eye(5), Jtr[..., None])[..., 0]
+        cmd = cmd + step
+        if spin_weight and np.max(np.abs(step)) < tol_mm:
+            break
+    if spin_weight:
+        return cmd
+    residual = np.max(np.abs(target - _tip_state(machine, cmd, errors, context, 0.0, direction_weight)), axis=1)
     bad = np.flatnonzero(residual > max(tol_mm, 1e-7))
     if bad.size:
         raise ValueError(f"inverse kinematics did not converge for poses {bad[:10].tolist()} "

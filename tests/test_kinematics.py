@@ -101,7 +101,7 @@ def test_compensation_by_ik_removes_the_true_error(machine, errors):
     comp = inverse(machine, target[:, :3, 3], target[:, :3, 2], errors, initial=nominal)
     after = np.linalg.norm(forward(machine, comp, errors).tool_in_workpiece()[:, :3, 3] - target[:, :3, 3], axis=1)
     assert before.mean() > 30 * UM
-    assert after.max() < 1e-9
+    assert after.max() < 2e-9  # mm: the IK stops when every component is within 1e-9
 
 
 def test_batched_fk_equals_pose_by_pose(machine, errors):

@@ -35,19 +35,19 @@ def test_default_plan_has_the_seeds_stage_sizes(default_plan):
     assert counts[("camera_calibration", "camera1")] == 150 and counts[("camera_calibration", "camera2")] == 150
     assert counts[("pige", "camera1")] == 300 and counts[("validation", "camera1")] == 100
     sweeps = plan[plan.stage == "pdge"].groupby("group").size().to_dict()
-    assert sweeps == {"X": 250, "Y": 250, "Z": 250, "A": 250, "C": 250}
+    assert sweeps == {"X": 250, "Y": 250, "Z": 250, "A": 250, "C": 255}  # C: 51 positions, both stroke ends
     assert len(fixture) == 300
     per_trial = plan[plan.stage == "camera_calibration"].groupby(["camera", "group"]).size()
     assert per_trial.eq(15).all() and len(per_trial) == 20
 
 
 def test_sweeps_step_as_planned_and_alternate_direction(default_plan):
-    """X/Y/A as the seed; Z in 0.2 mm steps and C over its whole stroke (see tasks.campaign_plan)."""
+    """X/Y/A as the seed; Z in 0.2 mm steps and C over its whole stroke, ends included (see tasks.campaign_plan)."""
     plan, _ = default_plan
     for axis, step in {"X": 1.0, "Y": 1.0, "Z": 0.2, "A": 1.0, "C": 7.2}.items():
         s = plan[(plan.stage == "pdge") & (plan.group == axis)]
         first = s[s.repeat == 0][axis].to_numpy()
-        assert np.allclose(np.diff(first), step) and 0.0 in first and len(first) == 50
+        assert np.allclose(np.diff(first), step) and 0.0 in first and len(first) == (51 if axis == "C" else 50)
         assert np.allclose(s[s.repeat == 1][axis].to_numpy(), first[::-1])
         others = [a for a in "XYZAC" if a != axis]
         assert np.allclose(s[others].to_numpy(), 0.0)

@@ -91,3 +91,22 @@ def assemble_measurements(images: pd.DataFrame, poses: pd.DataFrame) -> Measurem
     approach = merged[[f"approach_{a}" for a in AXIS_ORDER]].to_numpy(dtype=float)
     context = PoseContext(approach, table["time_s"].to_numpy(dtype=float), table["temperature_c"].to_numpy(dtype=float))
     return Measurements(table, T, cov, context)
+
+
+def planned_measurements(plan: pd.DataFrame, cov: np.ndarray) -> Measurements:
+    """Measurements shaped like a campaign plan (:func:`tasks.campaign_plan.plan_campaign`) with
+    identity poses: the frame for synthetic (simulated, pose-level) measurements, e.g.
+    :func:`tasks.identification.pige_identification.synthetic_measurements`.
+
+    plan: manifest rows in capture order (camera-calibration rows are left out: the machine does
+    not move for them). cov: (6, 6) covariance given to every pose (mm, rad). The context
+    (approach directions, time, temperature) comes from the plan as the capture would give it.
+    """
+    rows = plan[plan.stage != "camera_calibration"]
+    approach = approach_directions(plan[list(AXIS_ORDER)].to_numpy(dtype=float))[rows.index.to_numpy()]
+    table = rows[["image_id", "camera", "stage", "group", "repeat", "time_s", "temperature_c",
+                  *AXIS_ORDER]].reset_index(drop=True)
+    n = len(table)
+    context = PoseContext(approach, table["time_s"].to_numpy(dtype=float), table["temperature_c"].to_numpy(dtype=float))
+    return Measurements(table, np.tile(np.eye(4), (n, 1, 1)), np.tile(np.asarray(cov, dtype=float), (n, 1, 1)),
+                        context)

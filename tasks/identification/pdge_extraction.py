@@ -11,15 +11,18 @@ the modelled and T_meas the measured T_cam_plate, the error motion of j is the c
 read as the six components (δx, δy, δz, εx, εy, εz) of eq. 8 (εy = asin R13, εx = −atan2(R23, R33),
 εz = −atan2(R12, R11)). The images of a position are averaged over repeats, then each component
 is smoothed by a weighted smoothing spline whose roughness is chosen by generalised
-cross-validation (a periodic one for a rotary axis swept over its whole turn).
+cross-validation.
 
 Gauge (what a sweep cannot tell, and where it goes):
 - the value at home is indistinguishable from the constant errors that the PIGE fit identifies,
   so every profile is referred to home (zero at command 0);
-- the linear trend of a linear axis' translations perpendicular to its motion is its direction:
-  for X it defines the base x axis, for Y's z component the XY plane, and the rest are the
-  squareness errors of eq. 21 (:mod:`tasks.identification.squareness`). Those trends are
-  removed from the profiles and reported.
+- what a change of the axis line would produce (:func:`line_error_signatures`: for a linear
+  axis the linear trends of its perpendicular translations, i.e. its direction; for a rotary one
+  the once-per-turn patterns of a tilted or shifted axis) is removed by least squares: the PIGEs
+  and, for X's direction and the XY plane, the camera's mounting carry it. The fit of the
+  constant parameters over the sweeps and the five-axis poses then sees these trends in the
+  residuals and identifies the squareness of the linear axes from their motion directions
+  (eq. 21) together with the other PIGEs.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from scipy.interpolate import CubicSpline, make_smoothing_spline
 from tasks import se3
 from tasks.error_model import COMPONENT_SCALE, ERROR_COMPONENTS, ErrorModel
 from tasks.identification.measurements import Measurements
-from tasks.kinematics import forward
+from tasks.kinematics import forward, ideal_joint_motion
 from tasks.machine import AXIS_ORDER, Machine
 
 COMPONENT_COLUMNS = ("dx_um", "dy_um", "dz_um", "ex_arcsec", "ey_arcsec", "ez_arcsec")
@@ -42,22 +45,17 @@ COMPONENT_COLUMNS = ("dx_um", "dy_um", "dz_um", "ex_arcsec", "ey_arcsec", "ez_ar
 @dataclass
 class TabulatedProfile:
     """Six error motions of one axis tabulated at ``positions`` (internal units: mm or rad) and
-    interpolated by cubic splines; periodic over 2π when ``periodic``, otherwise held constant
-    beyond the tabulated range. values: (K, 6) in mm / rad."""
+    interpolated by a natural cubic spline, held constant beyond the tabulated range.
+    values: (K, 6) in mm / rad."""
 
     positions: np.ndarray
     values: np.ndarray
-    periodic: bool = False
     _spline: CubicSpline | None = field(default=None, init=False, repr=False, compare=False)
 
     def _fit(self) -> CubicSpline:
         if self._spline is None:
-            x, y = np.asarray(self.positions, float), np.asarray(self.values, float)
-            if self.periodic:
-                x, y = np.append(x, x[0] + 2 * np.pi), np.vstack([y, y[:1]])
-                self._spline = CubicSpline(x, y, axis=0, bc_type="periodic")
-            elif x.size >= 2:
-                self._spline = CubicSpline(x, y, axis=0, bc_type="natural")
+            self._spline = CubicSpline(np.asarray(self.positions, float), np.asarray(self.values, float),
+                                       axis=0, bc_type="natural")
         return self._spline
 
     def __call__(self, position: np.ndarray) -> np.ndarray:
@@ -65,21 +63,15 @@ class TabulatedProfile:
         pos = np.asarray(position, dtype=float)
         if len(self.positions) < 2:
             return np.broadcast_to(np.asarray(self.values, float).reshape(-1, 6)[0], (*pos.shape, 6)).copy()
-        x0 = self.positions[0]
-        if self.periodic:
-            pos = (pos - x0) % (2 * np.pi) + x0
-        else:
-            pos = np.clip(pos, self.positions[0], self.positions[-1])
-        return self._fit()(pos)
+        return self._fit()(np.clip(pos, self.positions[0], self.positions[-1]))
 
     def to_dict(self) -> dict:
         return {"kind": "tabulated", "positions": np.asarray(self.positions).tolist(),
-                "values": (np.asarray(self.values) / COMPONENT_SCALE).tolist(), "periodic": self.periodic}
+                "values": (np.asarray(self.values) / COMPONENT_SCALE).tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> TabulatedProfile:
-        return cls(np.asarray(d["positions"], float), np.asarray(d["values"], float).reshape(-1, 6) * COMPONENT_SCALE,
-                   bool(d.get("periodic", False)))
+        return cls(np.asarray(d["positions"], float), np.asarray(d["values"], float).reshape(-1, 6) * COMPONENT_SCALE)
 
 
 def error_motion_components(E: np.ndarray) -> np.ndarray:
@@ -119,55 +111,66 @@ def measured_error_motions(machine: Machine, model: ErrorModel, sweep: Measureme
     return error_motion_components(Q @ D @ se3.inverse(Q))
 
 
-def _smooth(x: np.ndarray, y: np.ndarray, w: np.ndarray, periodic: bool) -> np.ndarray:
+def _smooth(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Weighted smoothing spline through (x, y) with GCV-chosen roughness, evaluated at x."""
     if x.size < 5:
         return y.copy()
     w = w / w.mean()  # GCV is scale-free in the weights but ill-conditioned for weights ~1e8
-    if periodic:  # three turns side by side, keep the middle one
-        xs = np.concatenate([x - 2 * np.pi, x, x + 2 * np.pi])
-        return make_smoothing_spline(xs, np.tile(y, 3), w=np.tile(w, 3))(x)
     return make_smoothing_spline(x, y, w=w)(x)
 
 
-def _is_full_turn(machine: Machine, axis: str, positions_cmd: np.ndarray) -> bool:
-    ax = machine.axes[axis]
-    return ax.is_rotary and positions_cmd.size > 4 and np.ptp(positions_cmd) + np.diff(positions_cmd).max() >= 359.0
+def line_error_basis(machine: Machine, axis: str) -> np.ndarray:
+    """(m, 6) unit error screws (joint frame) that move ``axis``' line: for a linear axis the two
+    rotations that tilt its direction (m = 2), for a rotary axis also the two translations that
+    shift it (m = 4). The PIGEs of Table 2 are such screws."""
+    d = np.abs(np.asarray(machine.axes[axis].direction, dtype=float))
+    perp = [k for k in range(3) if d[k] < 0.5]
+    rows = [3 + k for k in perp] + ([] if not machine.axes[axis].is_rotary else perp)
+    return np.eye(6)[rows]
+
+
+def line_error_signatures(machine: Machine, axis: str, q: np.ndarray) -> np.ndarray:
+    """(K, 6, m) error motions (mm, rad per unit screw) that each line error of
+    :func:`line_error_basis` produces at positions ``q`` (K,) (mm or rad): E·J·E⁻¹·J⁻¹ to first
+    order, e − Ad_J e with J = e^{ξ̂θ}. Zero at home."""
+    basis = line_error_basis(machine, axis)  # (m, 6)
+    J = ideal_joint_motion(machine, axis, np.asarray(q, dtype=float))
+    moved = np.einsum("kij,mj->kim", se3.adjoint(J), basis)  # (K, 6, m)
+    return basis.T[None] - moved
 
 
 def referred_to_home(machine: Machine, axis: str, q: np.ndarray, values: np.ndarray,
                      reference: TabulatedProfile) -> tuple[np.ndarray, np.ndarray]:
     """Apply the gauge of this module to ``values`` (N, 6) at positions ``q`` (N,) (internal units).
 
-    The home value of ``reference`` is subtracted; for a linear axis the linear trend of
-    ``reference``'s perpendicular translations is subtracted too. Returns (referred values,
-    slopes (6,) removed per unit of position)."""
+    The home value of ``reference`` is subtracted, then the least-squares combination (in µm and
+    arcsec) of the line-error signatures that best fits ``reference`` over its positions. Returns
+    (referred values, the line-error coefficients removed (m,) in mm / rad, rows of
+    :func:`line_error_basis`)."""
     home = reference(np.zeros(1))[0]
-    slopes = np.zeros(6)
-    ax = machine.axes[axis]
-    if not ax.is_rotary:
-        x = np.asarray(reference.positions, float)
-        fit = reference(x) - home
-        along = int(np.argmax(np.abs(ax.direction)))
-        for k in range(3):
-            if k != along and x.size >= 2:
-                slopes[k] = float(x @ fit[:, k] / (x @ x))
-    return values - home - np.outer(q, slopes), slopes
+    x = np.asarray(reference.positions, float)
+    sig = line_error_signatures(machine, axis, x) / COMPONENT_SCALE[None, :, None]  # per unit screw, file units
+    target = (reference(x) - home) / COMPONENT_SCALE
+    A = sig.reshape(-1, sig.shape[2])
+    coef = np.linalg.lstsq(A, target.ravel(), rcond=None)[0] if x.size >= 2 else np.zeros(A.shape[1])
+    removed = np.einsum("kcm,m->kc", line_error_signatures(machine, axis, q), coef)
+    return values - home - removed, coef
 
 
 @dataclass
 class PdgeResult:
     """table: the ``pdge`` lake table (see docs/results). profiles: {axis: TabulatedProfile}
-    referred to home (mm, rad). slopes: {axis: (6,) removed linear trends (mm per mm)}."""
+    referred to home (mm, rad). line_errors: {axis: (m,) the line-error coefficients removed
+    (mm / rad, rows of :func:`line_error_basis`)}."""
 
     table: pd.DataFrame
     profiles: dict[str, TabulatedProfile]
-    slopes: dict[str, np.ndarray]
+    line_errors: dict[str, np.ndarray]
 
 
 def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis: str,
                  truth: ErrorModel | None = None) -> tuple[pd.DataFrame, TabulatedProfile, np.ndarray]:
-    """The PDGE rows, smooth referred profile and removed slopes of one axis from its sweep."""
+    """The PDGE rows, smooth referred profile and removed line errors of one axis from its sweep."""
     e = measured_error_motions(machine, model, sweep, axis)  # (N, 6) mm, rad
     pos_cmd = sweep.table[axis].to_numpy(dtype=float)
     frame = pd.DataFrame(e, columns=ERROR_COMPONENTS).assign(position=pos_cmd)
@@ -186,13 +189,12 @@ def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis:
         pooled = np.var(np.diff(mean.to_numpy(), axis=0), axis=0) / 2 if len(mean) > 2 else np.ones(6)
     pooled = np.maximum(pooled, 1e-18)
     std = np.sqrt(pooled[None, :] / count[:, None])
-    periodic = _is_full_turn(machine, axis, positions_cmd)
     values = mean.to_numpy()
-    fitted = np.column_stack([_smooth(q, values[:, k], count / pooled[k], periodic) for k in range(6)])
-    raw_profile = TabulatedProfile(q, fitted, periodic)
-    fit_ref, slopes = referred_to_home(machine, axis, q, fitted, raw_profile)
+    fitted = np.column_stack([_smooth(q, values[:, k], count / pooled[k]) for k in range(6)])
+    raw_profile = TabulatedProfile(q, fitted)
+    fit_ref, line = referred_to_home(machine, axis, q, fitted, raw_profile)
     meas_ref, _ = referred_to_home(machine, axis, q, values, raw_profile)
-    profile = TabulatedProfile(q, fit_ref, periodic)
+    profile = TabulatedProfile(q, fit_ref)
     rows = pd.DataFrame({"axis": axis, "position": positions_cmd, "position_unit": "deg" if ax.is_rotary else "mm",
                          "n_images": count})
     for k, col in enumerate(COMPONENT_COLUMNS):
@@ -202,26 +204,26 @@ def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis:
         rows[f"truth_{col}"] = np.nan
     if truth is not None and axis in truth.pdge:
         true_values = truth.pdge[axis](q)
-        true_ref, _ = referred_to_home(machine, axis, q, true_values, TabulatedProfile(q, true_values, periodic))
+        true_ref, _ = referred_to_home(machine, axis, q, true_values, TabulatedProfile(q, true_values))
         for k, col in enumerate(COMPONENT_COLUMNS):
             rows[f"truth_{col}"] = true_ref[:, k] / COMPONENT_SCALE[k]
     rows["translation_um"] = np.linalg.norm(rows[list(COMPONENT_COLUMNS[:3])].to_numpy(), axis=1)
     rows["rotation_arcsec"] = np.linalg.norm(rows[list(COMPONENT_COLUMNS[3:])].to_numpy(), axis=1)
-    return rows, profile, slopes
+    return rows, profile, line
 
 
 def extract_pdges(machine: Machine, model: ErrorModel, measurements: Measurements,
                   truth: ErrorModel | None = None) -> PdgeResult:
     """PDGEs of every axis that has a sweep (stage ``pdge``, group = axis name)."""
-    tables, profiles, slopes = [], {}, {}
+    tables, profiles, lines = [], {}, {}
     sweeps = measurements.stage("pdge")
     for axis in AXIS_ORDER:
         sweep = sweeps.select(sweeps.table.group == axis)
         if len(sweep) < 2:
             continue
-        rows, profile, slope = extract_axis(machine, model, sweep, axis, truth)
+        rows, profile, line = extract_axis(machine, model, sweep, axis, truth)
         tables.append(rows)
         profiles[axis] = profile
-        slopes[axis] = slope
+        lines[axis] = line
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
-    return PdgeResult(table, profiles, slopes)
+    return PdgeResult(table, profiles, lines)

@@ -28,7 +28,10 @@ from tasks.kinematics import forward, pose_error
 from tasks.machine import Machine
 
 COV_FLOOR = np.diag([1e-4**2] * 3 + [(np.pi / 648000) ** 2] * 3)  # (0.1 µm)², (1″)²
-IDENTIFICATION_STAGE = "pige"
+# the constant parameters are fitted over camera 1's five-axis poses and its sweeps of X, Y, Z
+# and C: the sweeps' long travel fixes the directions of motion (squareness, eq. 21)
+IDENTIFICATION_STAGES = ("pige", "pdge")
+IDENTIFICATION_CAMERA = "camera1"
 
 
 def whitening(cov: np.ndarray) -> np.ndarray:
@@ -144,13 +147,14 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
     pdge = extract_pdges(machine, base, measurements, truth)
     with_pdge = ErrorModel(pige=dict(base.pige), pdge={**base.pdge, **pdge.profiles}, effects=list(base.effects),
                            joint_offsets=dict(base.joint_offsets), attachment_offsets=dict(base.attachment_offsets))
-    poses = measurements.stage(IDENTIFICATION_STAGE)
+    poses = measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
     fit = identify_pige(machine, with_pdge, poses, specs)
     truth_fit = None
     if truth is not None:
         clean = synthetic_measurements(machine, truth, measurements)
         truth_pdge = extract_pdges(machine, base, clean)
         truth_base = ErrorModel(pdge={**base.pdge, **truth_pdge.profiles}, effects=list(base.effects))
-        truth_fit = identify_pige(machine, truth_base, clean.stage(IDENTIFICATION_STAGE), specs)
+        truth_fit = identify_pige(machine, truth_base,
+                                  clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA), specs)
     return CalibrationResult(pdge, fit, truth_fit, truth)
 

@@ -8,6 +8,7 @@ capture context (approach direction of each axis, time, temperature) and the mea
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pandas as pd
@@ -34,10 +35,16 @@ class Measurements:
     def __len__(self) -> int:
         return len(self.table)
 
-    @property
+    @cached_property
     def commands(self) -> np.ndarray:
-        """(N, 5) commanded X, Y, Z (mm), A, C (deg)."""
+        """(N, 5) commanded X, Y, Z (mm), A, C (deg); computed once (the table is not to be modified)."""
         return self.table[list(AXIS_ORDER)].to_numpy(dtype=float)
+
+    @cached_property
+    def camera_rows(self) -> dict[str, np.ndarray]:
+        """{camera: (N,) bool mask of its rows}; computed once."""
+        cams = self.table["camera"].to_numpy()
+        return {str(c): cams == c for c in np.unique(cams)}
 
     def select(self, mask) -> Measurements:
         """The subset of rows where ``mask`` (bool array or Series) holds."""

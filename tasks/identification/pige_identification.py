@@ -44,10 +44,8 @@ def pose_residuals(machine: Machine, model: ErrorModel, meas: Measurements) -> n
     """(N, 6) residuals of eq. 20 (mm, rad) of each image against ``model``, per image's camera."""
     fk = forward(machine, meas.commands, model, meas.context)
     out = np.empty((len(meas), 6))
-    cams = meas.table.camera.to_numpy()
-    for cam in np.unique(cams):
-        rows = cams == cam
-        out[rows] = pose_error(meas.T[rows], fk.camera_view(str(cam))[rows])
+    for cam, rows in meas.camera_rows.items():
+        out[rows] = pose_error(meas.T[rows], fk.camera_view(cam)[rows])
     return out
 
 

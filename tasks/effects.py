@@ -86,6 +86,10 @@ class Effect:
     def __getitem__(self, name: str):
         return self.values[name]
 
+    def with_values(self, **changes) -> Effect:
+        """A copy of this effect with some parameter values changed (e.g. a fitted amplitude)."""
+        return type(self)(**{**self.values, **changes})
+
     def spec(self) -> str:
         """The canonical spec string: ``family:key=value,...`` in parameter order."""
         parts = []

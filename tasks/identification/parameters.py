@@ -8,7 +8,10 @@ Each parameter is one component of a constant error screw (internal units mm or 
   mm, shown as arcsec): Y toward X, Z toward X and Z toward Y, the motion-direction errors of eq. 21;
 - ``mount``: the hand–eye correction of a camera on its link (rotations and the depth along the
   optical axis). It absorbs what self-calibration leaves in the intrinsics: a principal-point error
-  acts as a small camera rotation and a focal-length error as a depth offset.
+  acts as a small camera rotation and a focal-length error as a depth offset;
+- ``effect``: an amplitude (or phase) of one of the model's effects (:mod:`tasks.effects`), in
+  that parameter's own unit; ``calibrate(..., base=ErrorModel(effects=[...]))`` fits them
+  (:mod:`tasks.diagnosis.effect_fit`).
 """
 
 from __future__ import annotations
@@ -22,26 +25,45 @@ from tasks.error_model import ARCSEC, PIGE_NAMES, PIGE_SCREWS, UM, ErrorModel
 
 @dataclass(frozen=True)
 class ParamSpec:
-    """name: shown in tables. kind: "pige" | "constant" | "mount". target: joint or attachment.
-    component: 0..5 of (dx, dy, dz, ex, ey, ez)."""
+    """name: shown in tables. kind: "pige" | "constant" | "squareness" | "mount" | "effect".
+    target: joint or attachment (for an effect: its axis or camera, if it has one).
+    component: 0..5 of (dx, dy, dz, ex, ey, ez); for an effect: its index in the model's ``effects``.
+    param, effect_unit, step (effects only): the effect's parameter, its unit and the Jacobian step
+    in that unit (0: one unit). An effect parameter is fitted in its own unit (scale 1)."""
 
     name: str
     kind: str
     target: str
     component: int
+    param: str = ""
+    effect_unit: str = ""
+    step: float = 0.0
 
     @property
     def is_angle(self) -> bool:
+        if self.kind == "effect":
+            return self.effect_unit == "arcsec"
         return self.component >= 3 or self.kind == "squareness"
 
     @property
     def unit(self) -> str:
+        if self.kind == "effect":
+            return self.effect_unit
         return "arcsec" if self.is_angle else "um"
 
     @property
     def scale(self) -> float:
-        """Internal units per file unit (mm per µm or rad per arcsec): also the Jacobian step."""
+        """Internal units per file unit (mm per µm or rad per arcsec; 1 for an effect's parameter)."""
+        if self.kind == "effect":
+            return 1.0
         return ARCSEC if self.is_angle else UM
+
+    @property
+    def jacobian_step(self) -> float:
+        """Difference step of the Jacobian (internal units): 1 µm, 1″ or one unit of an effect's parameter."""
+        if self.kind == "effect":
+            return self.step or 1.0
+        return self.scale
 
 
 COMPONENT_NAMES = ("dx", "dy", "dz", "ex", "ey", "ez")
@@ -81,15 +103,21 @@ def default_parameters(tool_link: str = "Z", plate: str = "plate_a") -> list[Par
 
 
 def apply_parameters(base: ErrorModel, specs: list[ParamSpec], values: np.ndarray) -> ErrorModel:
-    """``base`` with the parameters set to ``values`` (internal units), added to what base holds."""
+    """``base`` with the parameters set to ``values`` (internal units), added to what base holds.
+    An ``effect`` parameter is added to that parameter of ``base.effects[spec.component]``."""
     pige = dict(base.pige)
     joints = {k: np.array(v, dtype=float) for k, v in base.joint_offsets.items()}
     mounts = {k: np.array(v, dtype=float) for k, v in base.attachment_offsets.items()}
     slopes = {k: np.array(v, dtype=float) for k, v in base.joint_slopes.items()}
+    effects = list(base.effects)
     targets = {"constant": joints, "mount": mounts, "squareness": slopes}
     for spec, v in zip(specs, values, strict=True):
         if spec.kind == "pige":
             pige[spec.name] = pige.get(spec.name, 0.0) + float(v)
+        elif spec.kind == "effect":
+            e = effects[spec.component]
+            effects[spec.component] = e.with_values(**{spec.param: e[spec.param] + float(v)})
         else:
             targets[spec.kind].setdefault(spec.target, np.zeros(6))[spec.component] += float(v)
-    return replace(base, pige=pige, joint_offsets=joints, attachment_offsets=mounts, joint_slopes=slopes)
+    return replace(base, pige=pige, joint_offsets=joints, attachment_offsets=mounts, joint_slopes=slopes,
+                   effects=effects)

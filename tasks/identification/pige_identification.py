@@ -14,7 +14,8 @@ image from dominating (0.1 µm, 1″).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -40,12 +41,25 @@ def whitening(cov: np.ndarray) -> np.ndarray:
     return np.linalg.inv(L)
 
 
+def as_measured(machine: Machine, model: ErrorModel, camera: str, T_cam_plate: np.ndarray, meas: Measurements,
+                rows: np.ndarray) -> np.ndarray:
+    """``T_cam_plate`` (n, 4, 4) of ``meas``' ``rows`` (bool mask) as ``camera`` would measure it: with the
+    imaging bias of the model's camera effects (focal drift, extra distortion; :mod:`tasks.diagnosis.imaging`)."""
+    if not model.effects:
+        return T_cam_plate
+    from tasks.diagnosis.imaging import apparent_view
+
+    idx = np.flatnonzero(rows)
+    q = machine.commands_to_internal(meas.commands[idx])
+    return apparent_view(machine, model.effects, camera, T_cam_plate, q, meas.context.take(idx))
+
+
 def pose_residuals(machine: Machine, model: ErrorModel, meas: Measurements) -> np.ndarray:
     """(N, 6) residuals of eq. 20 (mm, rad) of each image against ``model``, per image's camera."""
     fk = forward(machine, meas.commands, model, meas.context)
     out = np.empty((len(meas), 6))
     for cam, rows in meas.camera_rows.items():
-        out[rows] = pose_error(meas.T[rows], fk.camera_view(cam)[rows])
+        out[rows] = pose_error(meas.T[rows], as_measured(machine, model, cam, fk.camera_view(cam)[rows], meas, rows))
     return out
 
 
@@ -57,7 +71,7 @@ def synthetic_measurements(machine: Machine, truth: ErrorModel, like: Measuremen
     cams = like.table.camera.to_numpy()
     for cam in np.unique(cams):
         rows = cams == cam
-        T[rows] = fk.camera_view(str(cam))[rows]
+        T[rows] = as_measured(machine, truth, str(cam), fk.camera_view(str(cam))[rows], like, rows)
     return Measurements(like.table, T, like.cov, like.context)
 
 
@@ -76,18 +90,33 @@ class PigeFit:
 
 
 def identify_pige(machine: Machine, base: ErrorModel, meas: Measurements,
-                  specs: list[ParamSpec] | None = None, tau: float = 1e-5) -> PigeFit:
-    """Levenberg–Marquardt (eq. 22) of ``specs`` over ``meas`` with the PDGEs of ``base`` fixed."""
+                  specs: list[ParamSpec] | None = None, tau: float = 1e-5, x0: np.ndarray | None = None,
+                  adjust: Callable[[ErrorModel, np.ndarray], ErrorModel] | None = None) -> PigeFit:
+    """Levenberg–Marquardt (eq. 22) of ``specs`` over ``meas`` with the PDGEs of ``base`` fixed.
+
+    x0: starting values (internal units; default zeros). adjust: optional ``(model, x) -> model``
+    applied after the parameters (the effect fit uses it to move the PDGE profiles with the
+    effects' parameters, :mod:`tasks.diagnosis.effect_fit`)."""
     specs = specs or default_parameters()
     W = whitening(meas.cov)
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        e = pose_residuals(machine, apply_parameters(base, specs, x), meas)
+    def model_at(x: np.ndarray) -> ErrorModel:
+        model = apply_parameters(base, specs, x)
+        return adjust(model, x) if adjust is not None else model
+
+    steps = np.array([s.jacobian_step for s in specs])  # 1 µm or 1″: well inside the linear range
+
+    def residuals(x_natural: np.ndarray) -> np.ndarray:
+        e = pose_residuals(machine, model_at(x_natural * steps), meas)
         return np.einsum("nij,nj->ni", W, e).ravel()
 
-    steps = np.array([s.scale for s in specs])  # 1 µm or 1″: well inside the linear range
-    fit = levenberg_marquardt(residuals, np.zeros(len(specs)), steps, tau=tau)
-    return PigeFit(specs, fit, apply_parameters(base, specs, fit.x), len(meas))
+    # the LM runs in natural units (one step = 1 µm, 1″ or one unit of an effect's parameter), where
+    # its identifiable subspace is meant to be taken; results are converted back to internal units
+    start = np.zeros(len(specs)) if x0 is None else np.asarray(x0, dtype=float)
+    fit_n = levenberg_marquardt(residuals, start / steps, np.ones(len(specs)), tau=tau)
+    fit = replace(fit_n, x=fit_n.x * steps, covariance=fit_n.covariance * np.outer(steps, steps),
+                  jacobian=fit_n.jacobian / steps)
+    return PigeFit(specs, fit, model_at(fit.x), len(meas))
 
 
 def null_space_sentences(specs: list[ParamSpec], fit: FitResult) -> list[str]:
@@ -105,12 +134,16 @@ def null_space_sentences(specs: list[ParamSpec], fit: FitResult) -> list[str]:
 @dataclass
 class CalibrationResult:
     """pdge: PDGE extraction. pige: the fit. model: the identified error model (PDGE profiles,
-    PIGEs, constants, mounts). truth_pige: the same fit on noise-free truth (simulated only)."""
+    PIGEs, constants, mounts, effects). truth_pige: the same fit on noise-free truth (simulated only).
+    extraction_model: the model the PDGEs were extracted with (the base, its effects at their fitted
+    values). notes: warnings of the fit in words (e.g. an effect these poses cannot identify)."""
 
     pdge: PdgeResult
     pige: PigeFit
     truth_pige: PigeFit | None = None
     truth: ErrorModel | None = None
+    extraction_model: ErrorModel | None = None
+    notes: list[str] = field(default_factory=list)
 
     @property
     def model(self) -> ErrorModel:
@@ -139,9 +172,15 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
     """PDGEs from the sweeps, then the constant parameters over the ``pige`` stage (camera 1).
 
     base: a starting model whose effects (and anything else) are kept; its PDGE profiles are
-    replaced by the extracted ones. truth: the simulator's model, to express it in the same gauge.
+    replaced by the extracted ones. When it holds effects, their amplitudes (and phases) are fitted
+    too, the PDGEs re-extracted with them (:func:`tasks.diagnosis.effect_fit.calibrate_with_effects`).
+    truth: the simulator's model, to express it in the same gauge.
     """
     base = base or ErrorModel()
+    if base.effects:
+        from tasks.diagnosis.effect_fit import calibrate_with_effects
+
+        return calibrate_with_effects(machine, measurements, base, truth, specs)
     pdge = extract_pdges(machine, base, measurements, truth)
     with_pdge = ErrorModel(pige=dict(base.pige), pdge={**base.pdge, **pdge.profiles}, effects=list(base.effects),
                            joint_offsets=dict(base.joint_offsets), attachment_offsets=dict(base.attachment_offsets))
@@ -154,5 +193,5 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
         truth_base = ErrorModel(pdge={**base.pdge, **truth_pdge.profiles}, effects=list(base.effects))
         truth_fit = identify_pige(machine, truth_base,
                                   clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA), specs)
-    return CalibrationResult(pdge, fit, truth_fit, truth)
+    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=base)
 

@@ -278,6 +278,7 @@ def demo(
 
 
 app.command("query")(lake_cli.query)
+app.command("reproduce")(lake_cli.reproduce)
 
 
 def main() -> None:  # pragma: no cover

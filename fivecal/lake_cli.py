@@ -31,3 +31,18 @@ def query(
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None
     typer.echo(format_result(result, format, max_rows))
+
+
+def reproduce(
+    report_dir: Annotated[Path, typer.Argument(help="a report folder written by fivecal calibrate")],
+    campaign: Annotated[Path | None, typer.Option(help="the campaign folder, if it moved (default: the recorded "
+                                                       "path)")] = None,
+    workdir: Annotated[Path | None, typer.Option(help="keep the reproduction's results and report here (default: "
+                                                      "a temporary folder)")] = None,
+) -> None:
+    """Re-run a report's calibration with its recorded parameters and Prefect's cache refreshed; print
+    every number that differs (exit 1), or "all N numbers reproduced"."""
+    from tasks.reproduce import reproduce_report
+
+    code = reproduce_report(report_dir, campaign, workdir, echo=typer.echo, error=lambda m: typer.echo(m, err=True))
+    raise typer.Exit(code)

@@ -6,6 +6,7 @@ SYNOPSIS::
     TABLES["pige"].keys                      # ('campaign_id', 'name')
     schema_version("pige")                   # 1, stamped in each file's metadata by write_partition
     schema_problems("pige", pq.read_schema(path))   # [] when the file matches the registry
+    partition_problems("pige", path)                 # the same, plus its table name and schema_version
 
     python -m tasks.lake_schema --write docs/results-schema.md   # regenerate the doc's column tables
     python -m tasks.lake_schema --check docs/results-schema.md   # exit 1 if the doc and registry differ
@@ -319,6 +320,28 @@ def schema_problems(table: str, schema: pa.Schema) -> list[str]:
                  if n not in t.column_names]
     problems += [f"{table}: column {c.name} is {got[c.name]} in the file, {c.dtype} in the registry"
                  for c in t.columns if c.name in got and got[c.name] != c.dtype]
+    return problems
+
+
+def partition_problems(table: str, path: str | Path) -> list[str]:
+    """What is wrong with the partition file ``path`` of ``table`` against the contract: its
+    columns and dtypes (:func:`schema_problems`) and its ``fivecal`` metadata (table name and
+    schema version). [] when it conforms. For a table's own schema test::
+
+        assert partition_problems("drift", partition_path("drift", campaign_id, root) / "part-0.parquet") == []
+    """
+    import json
+
+    import pyarrow.parquet as pq
+
+    schema = pq.read_schema(path)
+    problems = schema_problems(table, schema)
+    meta = json.loads((schema.metadata or {}).get(b"fivecal", b"{}"))
+    if meta.get("table") != table:
+        problems.append(f"{path}: metadata table is {meta.get('table')!r}, not {table!r}")
+    if meta.get("schema_version") != schema_version(table):
+        problems.append(f"{path}: schema_version {meta.get('schema_version')!r} in the file, "
+                        f"{schema_version(table)!r} in the registry")
     return problems
 
 

@@ -9,12 +9,17 @@ A report folder holds::
                            (when the report was given the images table)
     data/parameters.json   campaign_id, run, simulated, the provenance (campaign folder, detector,
                            fivecal version, input hashes, ...), sha256 of campaign.json and
-                           manifest.csv, and per table its rows and schema version
+                           manifest.csv, a fingerprint of the code (``code_sha256``), the
+                           environment (library versions, OpenCV's thread count: OpenCV's
+                           multi-threaded camera calibration is not bitwise repeatable) and per
+                           table its rows and schema version
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import platform
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -46,6 +51,40 @@ def campaign_file_hashes(folder: str | Path | None) -> dict[str, str | None]:
     return out
 
 
+def code_fingerprint(packages: dict[str, Path] | None = None) -> str:
+    """sha256 of fivecal's own code and data files: every .py and .json file of the fivecal, flows
+    and tasks packages (machine descriptions included; ``packages``: {name: folder} instead),
+    relative path and content, in path order. fivecal's version number does not change while the
+    code is edited; this does."""
+    if packages is None:
+        import fivecal
+        import flows
+        import tasks
+
+        packages = {p.__name__: Path(p.__file__).parent for p in (fivecal, flows, tasks)}
+    h = hashlib.sha256()
+    for name, base in sorted(packages.items()):
+        for f in sorted(Path(base).rglob("*")):
+            if f.suffix not in (".py", ".json") or "__pycache__" in f.parts:
+                continue
+            h.update(f"{name}/{f.relative_to(base).as_posix()}\n".encode())
+            h.update(hashlib.sha256(f.read_bytes()).digest())
+    return h.hexdigest()
+
+
+def environment() -> dict:
+    """The libraries and settings the numbers depend on: versions, OpenCV's thread count, CPU arch."""
+    import cv2
+    import numpy
+    import pandas
+    import pyarrow
+    import scipy
+
+    return {"python": platform.python_version(), "numpy": numpy.__version__, "scipy": scipy.__version__,
+            "pandas": pandas.__version__, "pyarrow": pyarrow.__version__, "opencv": cv2.__version__,
+            "opencv_threads": cv2.getNumThreads(), "machine": platform.machine(), "system": platform.system()}
+
+
 def write_report_data(folder: Path, data: ReportData) -> dict[str, Path]:
     """Write ``folder/data/``: one Parquet file per table of :data:`REPORT_TABLES` that ``data``
     carries (units and frames as in the lake), inputs.parquet when ``data.images`` is given, and
@@ -73,6 +112,7 @@ def write_report_data(folder: Path, data: ReportData) -> dict[str, Path]:
                   "simulated": data.simulated, "written_by_fivecal": fivecal.__version__,
                   "provenance": data.provenance,
                   "campaign_files_sha256": campaign_file_hashes(data.provenance.get("campaign")),
+                  "code_sha256": code_fingerprint(), "environment": environment(),
                   "tables": tables}
     atomic_write_text(out / PARAMETERS_FILE, json.dumps(parameters, indent=1, sort_keys=True, default=str))
     written["parameters"] = out / PARAMETERS_FILE

@@ -17,6 +17,18 @@ DEMO_CAMPAIGN = Path("data/campaigns/demo")
 # The temporary Prefect server would try to send telemetry; these machines have no network for it.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 
+# Where the image work runs (flows/runners.py); both absent: threads of this process.
+DaskAddress = Annotated[str | None, typer.Option(help="scheduler address of an existing Dask cluster for the image "
+                                                      "work, e.g. tcp://10.0.0.5:8786")]
+DaskWorkers = Annotated[int | None, typer.Option(min=1, help="run the image work on a local Dask cluster of N "
+                                                             "worker processes")]
+
+
+def _check_dask(dask_address: str | None, dask_workers: int | None) -> None:
+    if dask_address and dask_workers is not None:
+        raise typer.BadParameter("give --dask-address (an existing cluster) or --dask-workers (a local one), not both",
+                                 param_hint="--dask-address/--dask-workers")
+
 
 @app.command()
 def simulate(
@@ -26,9 +38,13 @@ def simulate(
     effect: Annotated[list[str] | None, typer.Option(help="inject an effect: family:key=value,...")] = None,
     plan: Annotated[str, typer.Option(help="stage sizes: default (the seed's) or small (tests)")] = "default",
     overwrite: Annotated[bool, typer.Option(help="replace an existing campaign folder")] = False,
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
 ) -> None:
     """Simulate a measurement campaign of the prototype and write its folder."""
     from tasks.effects import parse_effect
+
+    _check_dask(dask_address, dask_workers)
 
     if size not in ("full", "small"):
         raise typer.BadParameter("size must be 'full' or 'small'", param_hint="--size")
@@ -39,10 +55,12 @@ def simulate(
             parse_effect(spec)
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--effect") from None
+    from flows.runners import image_task_runner
     from flows.simulate import simulate_campaign
 
-    path = simulate_campaign(str(out), seed=seed, size=size, effects=list(effect or []),
-                             small_plan=plan == "small", overwrite=overwrite)
+    flow = simulate_campaign.with_options(task_runner=image_task_runner(dask_address, dask_workers))
+    path = flow(str(out), seed=seed, size=size, effects=list(effect or []), small_plan=plan == "small",
+                overwrite=overwrite)
     typer.echo(f"campaign written to {path}")
 
 
@@ -66,14 +84,18 @@ def ingest(
     campaign: Annotated[Path, typer.Argument(help="campaign folder")],
     results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
     = None,
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
 ) -> None:
     """Validate a campaign and write its images table (cached by image content)."""
     from tasks.ingest import format_summary
 
+    _check_dask(dask_address, dask_workers)
+
     def run():
         from flows.ingest import run_ingest
 
-        return run_ingest(campaign, results)
+        return run_ingest(campaign, results, dask_address, dask_workers)
 
     summary = _on_valid_campaign(campaign, run)
     typer.echo(format_summary(summary))
@@ -86,12 +108,16 @@ def measure(
     results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
     = None,
     detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
 ) -> None:
     """Ingest a campaign, detect every dot grid, self-calibrate the cameras and estimate plate poses."""
-    def run():
-        from flows.measure import measure_campaign
+    _check_dask(dask_address, dask_workers)
 
-        return measure_campaign(str(campaign), None if results is None else str(results), detector)
+    def run():
+        from flows.measure import run_measure
+
+        return run_measure(campaign, results, detector, dask_address, dask_workers)
 
     summary = _on_valid_campaign(campaign, run)
     typer.echo(f"campaign {summary['campaign_id']}: {summary['n_images']} images, {summary['n_ingested_ok']} "

@@ -9,20 +9,19 @@ image: the per-chunk checks are cached by file content.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 from prefect import flow, get_run_logger
-from prefect.task_runners import ThreadPoolTaskRunner
 
+from flows.runners import image_task_runner
 from tasks.ingest import CHUNK_SIZE, format_summary, image_chunks, summarise
 from tasks.ingest_steps import assemble_images_table, check_image_chunk, read_campaign, write_images_table
 
 MAX_LOGGED_FAULTS = 20
 
 
-@flow(name="ingest-campaign", task_runner=ThreadPoolTaskRunner(max_workers=os.cpu_count() or 2))
+@flow(name="ingest-campaign", task_runner=image_task_runner())
 def ingest_campaign(campaign: str, results_root: str | None = None, chunk_size: int = CHUNK_SIZE) -> dict[str, Any]:
     """Ingest the campaign folder ``campaign`` into ``<results_root>/images/campaign_id=<id>/``.
 
@@ -57,9 +56,13 @@ def ingest_campaign(campaign: str, results_root: str | None = None, chunk_size: 
     return summary
 
 
-def run_ingest(campaign: str | Path, results_root: str | Path | None = None) -> dict[str, Any]:
+def run_ingest(campaign: str | Path, results_root: str | Path | None = None, dask_address: str | None = None,
+               dask_workers: int | None = None) -> dict[str, Any]:
     """Entry point for the CLI: run the flow on a campaign folder and return its summary.
 
+    dask_address, dask_workers: where the image checks run (see flows.runners.image_task_runner).
     Raises tasks.ingest.CampaignError (message names the file) on a campaign-level fault.
     """
-    return ingest_campaign(str(campaign), None if results_root is None else str(results_root))
+    runner = image_task_runner(dask_address, dask_workers)
+    return ingest_campaign.with_options(task_runner=runner)(str(campaign),
+                                                            None if results_root is None else str(results_root))

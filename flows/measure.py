@@ -4,16 +4,15 @@ plate pose of every image (§4.1, §5.2). Writes the ``dots``, ``camera_calibrat
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 from prefect import flow, get_run_logger
-from prefect.task_runners import ThreadPoolTaskRunner
 
 import fivecal
 from flows.ingest import ingest_campaign
+from flows.runners import image_task_runner, subflow_task_runner
 from tasks.ingest import load_campaign_metadata
 from tasks.vision import content_key, detection_chunks, expected_rotations, plates_by_camera
 from tasks.vision_steps import calibrate, detect_chunk, poses, read_images, write_table
@@ -21,7 +20,7 @@ from tasks.vision_steps import calibrate, detect_chunk, poses, read_images, writ
 CHUNK_SIZE = 32
 
 
-@flow(name="measure-campaign", task_runner=ThreadPoolTaskRunner(max_workers=os.cpu_count() or 2))
+@flow(name="measure-campaign", task_runner=image_task_runner())
 def measure_campaign(campaign: str, results_root: str | None = None, detector: str = "rrht",
                      chunk_size: int = CHUNK_SIZE) -> dict[str, Any]:
     """Ingest, detect, calibrate and estimate poses for the campaign folder ``campaign``.
@@ -31,7 +30,7 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     logger = get_run_logger()
     folder = Path(campaign).resolve()
     root = None if results_root is None else Path(results_root)
-    ingest_summary = ingest_campaign(str(folder), results_root)
+    ingest_summary = ingest_campaign.with_options(task_runner=subflow_task_runner())(str(folder), results_root)
     metadata = load_campaign_metadata(folder)
     campaign_id = metadata["campaign_id"]
     images = read_images(campaign_id, root)
@@ -46,7 +45,9 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     dots = pd.concat([r[0] for r in results], ignore_index=True)
     detections = pd.concat([r[1] for r in results], ignore_index=True)
 
-    cal_future = calibrate.submit(dots, images, metadata)
+    # only the calibration views' dots: all that the fit reads (and hashes for its cache key)
+    calibration_ids = images.loc[images["stage"] == "camera_calibration", "image_id"]
+    cal_future = calibrate.submit(dots[dots["image_id"].isin(calibration_ids)], images, metadata)
     calibration, cameras = cal_future.result()
     cached["calibrate"] = int(cal_future.state.name == "Cached")
     missing = sorted(set(plates) - set(cameras))
@@ -69,3 +70,15 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     logger.info(f"measured {campaign_id}: {summary['n_detected']}/{len(detections)} grids found, "
                 f"{summary['n_poses']} poses; cached steps {cached}")
     return summary
+
+
+def run_measure(campaign: str | Path, results_root: str | Path | None = None, detector: str = "rrht",
+                dask_address: str | None = None, dask_workers: int | None = None) -> dict[str, Any]:
+    """Entry point for the CLI: measure a campaign folder and return the flow's summary.
+
+    dask_address, dask_workers: where the image work of ingest and measure runs (see
+    flows.runners.image_task_runner); the flows themselves run in this process.
+    """
+    runner = image_task_runner(dask_address, dask_workers)
+    return measure_campaign.with_options(task_runner=runner)(
+        str(campaign), None if results_root is None else str(results_root), detector)

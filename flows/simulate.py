@@ -9,17 +9,21 @@ from pathlib import Path
 
 import numpy as np
 from prefect import flow, get_run_logger
-from prefect.task_runners import ThreadPoolTaskRunner
 
+from flows.runners import image_task_runner
 from tasks.simulation_steps import plan_and_write_truth, render_images
 
 BATCH_SIZE = 25
 
 
-@flow(name="simulate-campaign", task_runner=ThreadPoolTaskRunner(max_workers=os.cpu_count() or 2))
+@flow(name="simulate-campaign", task_runner=image_task_runner())
 def simulate_campaign(out: str, seed: int = 0, size: str = "full", effects: list[str] | None = None,
                       small_plan: bool = False, overwrite: bool = False) -> str:
-    """Write a simulated campaign to ``out``. The folder appears only when complete."""
+    """Write a simulated campaign to ``out``. The folder appears only when complete.
+
+    The rendering batches go to the flow's task runner (``simulate_campaign.with_options(task_runner=
+    flows.runners.image_task_runner(...))`` for Dask); its workers must see ``out``'s parent folder.
+    """
     logger = get_run_logger()
     out_path = Path(out).resolve()
     if out_path.exists() and not overwrite:

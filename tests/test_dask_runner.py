@@ -1,0 +1,129 @@
+"""Image work on Dask (flows/runners.py) gives the same results as the default thread runner.
+
+The claims: the runner choice is what the options ask for (and refuses to guess between an
+existing and a local cluster); every task that the image flows submit pickles (Dask ships it to
+worker processes); and ingest + measure of one campaign on two Dask worker processes write
+images, dots, camera_calibration and poses tables identical, value for value, to the default
+runner's, with every image checked and every grid detected afresh (nothing from a cache) and the
+work spread over both workers.
+"""
+
+from __future__ import annotations
+
+import pickle
+
+import cloudpickle
+import pandas as pd
+import pytest
+from prefect.task_runners import ThreadPoolTaskRunner
+
+from flows.runners import LOCAL_THREADS, image_task_runner
+from tasks.campaign_plan import CampaignPlan
+
+# enough calibration views for intrinsics (so that poses are estimated), 41 images
+PLAN = CampaignPlan(calibration_trials=2, images_per_trial=5, sweep_positions=2, sweep_repeats=1, pige_poses=3,
+                    validation_poses=1)
+MEASURE_TABLES = ("images", "dots", "camera_calibration", "poses")
+
+
+def test_default_runner_is_threads_of_this_process():
+    runner = image_task_runner()
+    assert isinstance(runner, ThreadPoolTaskRunner) and runner._max_workers == LOCAL_THREADS
+
+
+def test_address_connects_to_an_existing_cluster_and_workers_start_a_local_one():
+    from prefect_dask import DaskTaskRunner
+
+    existing = image_task_runner(dask_address="tcp://127.0.0.1:8786")
+    assert isinstance(existing, DaskTaskRunner) and existing.address == "tcp://127.0.0.1:8786"
+    assert existing._cluster is None and not existing.cluster_kwargs  # nothing started for an existing cluster
+    local = image_task_runner(dask_workers=3)
+    assert isinstance(local, DaskTaskRunner) and local.address is None
+    assert local.cluster_kwargs["n_workers"] == 3 and local.cluster_kwargs["processes"]
+    assert local.cluster_kwargs["threads_per_worker"] == 1
+
+
+@pytest.mark.parametrize(("address", "workers", "message"), [
+    ("tcp://127.0.0.1:8786", 2, "not both"),
+    (None, 0, "at least 1"),
+])
+def test_contradictory_or_empty_requests_are_refused(address, workers, message):
+    with pytest.raises(ValueError, match=message):
+        image_task_runner(address, workers)
+
+
+def test_every_submitted_task_pickles():
+    """Dask sends each task object (with its cache-key function) to a worker process."""
+    from tasks.ingest_steps import check_image_chunk
+    from tasks.simulation_steps import render_images
+    from tasks.vision_steps import calibrate, detect_chunk, poses
+
+    for task in (check_image_chunk, detect_chunk, calibrate, poses, render_images):
+        copy = pickle.loads(cloudpickle.dumps(task))
+        assert copy.name == task.name and copy.cache_key_fn is task.cache_key_fn
+
+
+def read_tables(root, campaign_id: str) -> dict[str, pd.DataFrame]:
+    from tasks.results_lake import read_table
+
+    out = {}
+    for name in MEASURE_TABLES:
+        df = read_table(name, root, campaign_id)
+        keys = [c for c in ("image_id", "trial", "camera", "row", "col") if c in df.columns]
+        out[name] = df.sort_values(keys, kind="stable").reset_index(drop=True)
+    return out
+
+
+@pytest.mark.flow
+def test_measure_on_two_dask_workers_gives_identical_tables(prefect_harness, tmp_path):
+    from distributed import Client, LocalCluster, get_task_stream
+    from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
+
+    from flows.measure import measure_campaign
+    from tasks.simulate import write_campaign
+
+    folder = write_campaign(tmp_path / "dask", "dask", seed=11, size="small", plan=PLAN)
+    chunk_size = 6  # 7 detection chunks, so that both workers get some
+    # a result storage of its own per run: the cache keys hash image contents, not the results root,
+    # so a shared storage would serve the second run from the first's cache
+    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: tmp_path / "storage-threads"}):
+        threads = measure_campaign(str(folder), str(tmp_path / "threads"), chunk_size=chunk_size)
+    storage = tmp_path / "storage-dask"
+    with (LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+          Client(cluster) as client, get_task_stream(client) as stream,
+          temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: storage})):
+        runner = image_task_runner(dask_address=cluster.scheduler_address)
+        dask = measure_campaign.with_options(task_runner=runner)(str(folder), str(tmp_path / "dask-results"),
+                                                                 chunk_size=chunk_size)
+
+    n = len(pd.read_csv(folder / "manifest.csv"))
+    for summary in (threads, dask):
+        assert summary["cached"] == {"detect": 0, "calibrate": 0, "poses": 0}
+        assert summary["n_detected"] == n and summary["n_poses"] == n
+    assert any(storage.iterdir())  # the workers persisted their results where this run told them
+    workers = {t["worker"] for t in stream.data}
+    assert len(workers) == 2, f"the image work ran on {workers}"
+
+    expected, got = read_tables(tmp_path / "threads", "dask"), read_tables(tmp_path / "dask-results", "dask")
+    for name in MEASURE_TABLES:
+        assert len(expected[name]) > 0, name
+        pd.testing.assert_frame_equal(got[name], expected[name], check_exact=True, obj=name)
+
+
+@pytest.mark.flow
+def test_ingest_on_a_local_cluster_it_starts_itself(prefect_harness, campaign_copy, tmp_path):
+    """``--dask-workers 2``: the flow starts a local cluster for its run and stops it afterwards."""
+    from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
+
+    from flows.ingest import run_ingest
+    from tasks.results_lake import read_table
+
+    campaign = campaign_copy("dasklocal")
+    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: tmp_path / "storage-threads"}):
+        threads = run_ingest(campaign, tmp_path / "threads")
+    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: tmp_path / "storage-dask"}):
+        dask = run_ingest(campaign, tmp_path / "dask", dask_workers=2)
+    assert threads["chunks_cached"] == dask["chunks_cached"] == 0
+    assert dask["by_status"] == {"ok": len(pd.read_csv(campaign / "manifest.csv"))}
+    pd.testing.assert_frame_equal(read_table("images", tmp_path / "dask"), read_table("images", tmp_path / "threads"),
+                                  check_exact=True)

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from fivecal import lake_cli
+from fivecal import lake_cli, recalibrate_cli
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
@@ -305,6 +305,8 @@ def demo(
 
 app.command("query")(lake_cli.query)
 app.command("reproduce")(lake_cli.reproduce)
+app.command("recalibrate")(recalibrate_cli.recalibrate)
+app.command("serve-recalibration")(recalibrate_cli.serve_recalibration)
 
 
 def main() -> None:  # pragma: no cover

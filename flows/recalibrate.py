@@ -8,7 +8,6 @@ or still changing (retried next tick); for each campaign input not in the ledger
 cron schedule with ``fivecal serve-recalibration`` (docs/recalibration.md).
 """
 
-from __future__ import annotations
 
 from datetime import UTC, datetime
 from pathlib import Path

@@ -123,3 +123,76 @@ def test_failed_or_claimed_campaign_is_left_for_the_next_tick(prefect_harness, t
     assert done["calibrated"] == ["f1"] and done["drift"]["campaigns"] == []  # nothing in the lake: empty report
     assert [r["report"] for r in Ledger.under(results).records()] == [f"{watch / 'f1'}/report.html"]
     assert tick(watch, results, reports)["calibrated"] == []
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+
+def test_tolerance_option_parsing():
+    import typer
+
+    from fivecal.recalibrate_cli import parse_tolerance
+
+    tol = parse_tolerance(["abs_um=3", "k=3", "require=either"])
+    assert (tol.abs_um, tol.abs_arcsec, tol.k, tol.require) == (3.0, 15.0, 3.0, "either")
+    for bad, message in (("abs_mm=3", "KEY one of"), ("k=x", "not a number"), ("require=maybe", "require"),
+                         ("abs_um=-1", "positive")):
+        with pytest.raises(typer.BadParameter, match=message):
+            parse_tolerance([bad])
+
+
+def test_recalibrate_command_runs_one_tick(prefect_harness, tmp_path):
+    from typer.testing import CliRunner
+
+    from fivecal.cli import app
+
+    watch = tmp_path / "watch"
+    watch.mkdir()
+    args = ["recalibrate", "--watch", str(watch), "--results", str(tmp_path / "results"), "--reports",
+            str(tmp_path / "reports")]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "calibrated now: none" in result.output and "drift report: not written" in result.output
+    result = CliRunner().invoke(app, [*args, "--always-report", "--tolerance", "abs_um=2"])
+    assert result.exit_code == 0, result.output
+    assert "**No verdict:** no calibrated campaign" in result.output
+    assert len(list((tmp_path / "reports" / "drift").glob("*/index.html"))) == 1
+
+
+def test_serve_recalibration_serves_the_flow_on_its_cron(prefect_harness, tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from fivecal.cli import app
+
+    calls = []
+    monkeypatch.setattr(recalibrate.recalibrate_new_campaigns, "serve", lambda **kw: calls.append(kw))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "watch").mkdir()
+    result = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "0 2 * * *", "--results",
+                                      "res", "--tolerance", "abs_arcsec=20", "--timezone", "Europe/Zurich"])
+    assert result.exit_code == 0, result.output
+    (kw,) = calls
+    assert (kw["name"], kw["limit"], kw["schedules"][0].cron, kw["schedules"][0].timezone) == (
+        "scheduled-recalibration", 1, "0 2 * * *", "Europe/Zurich")
+    p = kw["parameters"]
+    assert (p["watch_dir"], p["results_root"], p["reports_root"]) == (
+        str(tmp_path / "watch"), str(tmp_path / "res"), str(tmp_path / "reports"))  # absolute: runs start elsewhere
+    assert p["tolerance"]["abs_arcsec"] == 20.0 and recalibrate.recalibrate_new_campaigns.validate_parameters(p)
+    bad = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "61 2 * * *"])
+    assert bad.exit_code == 2 and "not a valid cron schedule" in " ".join(bad.output.replace("│", " ").split())
+
+
+def test_serve_recalibration_refuses_the_temporary_server(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(PREFECT_HOME=str(tmp_path / "prefect-home"), PREFECT_SERVER_ANALYTICS_ENABLED="false")
+    (tmp_path / "watch").mkdir()
+    run = subprocess.run([sys.executable, "-m", "fivecal.cli", "serve-recalibration", "--watch",
+                          str(tmp_path / "watch"), "--cron", "0 2 * * *"], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 2 and "temporary server cannot run schedules" in run.stderr

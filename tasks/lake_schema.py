@@ -37,6 +37,7 @@ DTYPES = ("string", "int64", "float64", "bool", "timestamp[us, UTC]")
 # frames: a column's ``frame`` is one of these keys (see docs/virtual-machine.md, docs/camera-calibration.md)
 COMMAND, IMAGE, PLATE_IN_CAMERA, PLATE_BODY = "machine command", "image", "plate → camera", "plate body"
 JOINT, PIGE_FRAME, WORKPIECE, TIP_ROTATION = "joint", "joint (eqs. 9–11)", "workpiece", "nominal tip"
+RESIDUAL_PLATE, RESIDUAL_CAMERA, TIP_MODEL = "residual, plate", "residual, camera", "tip, measured − model"
 FRAMES = {
     COMMAND: "axis coordinates as commanded: X/Y/Z in mm, A/C in degrees",
     IMAGE: "pixels: u right, v down, origin at the centre of the top-left pixel",
@@ -49,6 +50,12 @@ FRAMES = {
     PIGE_FRAME: "a PIGE, constant or mount: a component of a constant error screw in its joint's frame",
     WORKPIECE: "tip position error: actual minus nominal tip position, in the workpiece (plate a) frame",
     TIP_ROTATION: "tip orientation error: the rotation vector of R_nominal⁻¹ R_actual",
+    RESIDUAL_PLATE: "pose residual of eq. 20, e = log(T_model⁻¹ T_measured) = (v, ω): T_measured = T_model · "
+                    "exp(ê), v and ω in the plate frame (T_model: the fitted model's T_cam_plate)",
+    RESIDUAL_CAMERA: "the plate-frame residual (v, ω) rotated into the camera frame by the measured T_cam_plate's "
+                     "rotation (same point, the plate origin; no lever arm added)",
+    TIP_MODEL: "tip where the measured plate pose puts it minus where the model puts it, plate (workpiece) frame; "
+               "RMS over the validation poses",
 }
 
 
@@ -172,6 +179,37 @@ _CAMERA_INTRINSICS = (("fx_px", "px", "focal length along u"), ("fy_px", "px", "
                       ("p1", "", "tangential distortion p1"), ("p2", "", "tangential distortion p2"),
                       ("k3", "", "radial distortion k3"))
 
+def _residual_columns() -> tuple[Column, ...]:
+    comps = (("dx", "um", "v_x"), ("dy", "um", "v_y"), ("dz", "um", "v_z"), ("rx", "arcsec", "ω_x"),
+             ("ry", "arcsec", "ω_y"), ("rz", "arcsec", "ω_z"))
+    plate = [_c(f"{n}_{u}", "float64", u, RESIDUAL_PLATE, f"{s} of the pose residual") for n, u, s in comps]
+    camera = [_c(f"cam_{n}_{u}", "float64", u, RESIDUAL_CAMERA, f"{s} of the pose residual, camera axes")
+              for n, u, s in comps]
+    white = [_c(f"white_{n}", "float64", "", RESIDUAL_PLATE, f"{s} whitened as the fit whitens it: (W e), W = L⁻¹, "
+                "L Lᵀ = pose covariance + floor (L lower triangular: white_dx = dx/σ_dx, later components "
+                "conditional on the earlier ones)") for n, _, s in comps]
+    return (
+        _s("image_id", "image"), _s("camera", "camera name"), _s("stage", "pdge | pige | validation"),
+        _s("group", "swept axis, ... (as in the manifest)"), _i("repeat", "repeat index"),
+        _c("used_in_fit", "bool", meaning="the pose is one the constant-parameter fit (eq. 22) minimises "
+           "(identification stages of the identification camera); false: held out of that fit"),
+        *(_c(f"{a}_{u}", "float64", u, COMMAND, f"commanded {a}") for a, u, _ in _AXES),
+        _c("time_s", "float64", "s", meaning="time since the campaign's first image"),
+        _c("temperature_c", "float64", "°C", meaning="temperature at capture (20 if the manifest has none)"),
+        *(_i(f"approach_{a}", f"direction of {a}'s last move before the image: −1, +1, 0 (never moved)")
+          for a, _, _ in _AXES),
+        _c("u_mean_px", "float64", "px", IMAGE, "mean detected dot centre u: where the plate is in the image "
+           "(NaN without dots)"),
+        _c("v_mean_px", "float64", "px", IMAGE, "mean detected dot centre v"),
+        _i("n_dots", "finite detected dot centres of the image"),
+        *plate,
+        _c("position_um", "float64", "um", RESIDUAL_PLATE, "‖v‖"),
+        _c("orientation_arcsec", "float64", "arcsec", RESIDUAL_PLATE, "‖ω‖"),
+        *camera, *white,
+        _c("white_norm", "float64", "", RESIDUAL_PLATE, "‖W e‖, the Mahalanobis norm of the residual (≈ √6 at "
+           "the noise level)"))
+
+
 _TABLES = (
     TableSchema("images", 1, "manifest row", "tasks/ingest_steps.py (fivecal ingest)", (PARTITION, "manifest_row"), (
         _i("manifest_row", "1-based data row of manifest.csv"),
@@ -279,6 +317,41 @@ _TABLES = (
         _c("orientation_error_norm_arcsec", "float64", "arcsec", WORKPIECE,
            "mean ‖log(R_f⁻¹ R_true)‖ against the local PoE"),
         _s("note", "what the formulation leaves out"))),
+    TableSchema("residuals", 1, "image with a machine pose (camera_calibration views excluded)",
+                "tasks/residuals.py pose_residual_table (fivecal calibrate)", (PARTITION, "image_id"),
+                _residual_columns()),
+    TableSchema("dot_residuals", 1, "detected dot of an image with a measured pose",
+                "tasks/residuals.py dot_residual_table (fivecal calibrate)", (PARTITION, "image_id", "row", "col"), (
+        _s("image_id", "image"), _s("camera", "camera name"),
+        _s("stage", "camera_calibration | pdge | pige | validation"),
+        _i("row", "dot row on the plate"), _i("col", "dot column on the plate"),
+        _c("u_px", "float64", "px", IMAGE, "detected dot centre, u"),
+        _c("v_px", "float64", "px", IMAGE, "detected dot centre, v"),
+        _c("du_px", "float64", "px", IMAGE, "detected − projected u (plate dot through the measured pose and the "
+           "calibrated intrinsics)"),
+        _c("dv_px", "float64", "px", IMAGE, "detected − projected v"))),
+    TableSchema("model_ladder", 1, "refit of the campaign with a set of effects (a step)",
+                "tasks/model_ladder.py append_step (fivecal calibrate)", (PARTITION, "step"), (
+        _i("step", "0 for the first model fitted, then 1, 2, ...; a refit with the same effects replaces its step"),
+        _s("effects", "the model's effects without their fitted values (amplitudes, phases): what identifies the "
+           "step; canonical specs sorted and joined with '; ' (empty: none)"),
+        _s("effect_specs", "the same effects with their fitted values (full canonical specs), same order"),
+        _i("n_params", "parameters of the constant-parameter fit"),
+        _i("n_residuals", "whitened residuals of that fit (6 per pose)"),
+        _c("train_rms", "float64", meaning="RMS of the fit's whitened residuals (1 at the noise level)"),
+        _c("cv_rms", "float64", meaning="RMS of whitened residuals of five-axis poses predicted by k-fold refits "
+           "that did not see them (1 at the noise level; NaN if not run)"),
+        _c("validation_rms", "float64", meaning="RMS of the whitened residuals of the validation poses (held out of "
+           "every fit; 1 at the noise level)"),
+        _c("validation_position_um", "float64", "um", TIP_MODEL, "RMS tip position discrepancy"),
+        _c("validation_orientation_arcsec", "float64", "arcsec", TIP_MODEL, "RMS tip orientation discrepancy"),
+        _i("n_validation", "validation poses"),
+        _c("noise_floor_position_um", "float64", "um", TIP_MODEL, "validation_position_um of a perfect model: RMS "
+           "expected norm from the pose covariances"),
+        _c("noise_floor_orientation_arcsec", "float64", "arcsec", TIP_MODEL, "the same for the orientation"),
+        _c("bic", "float64", meaning="M ln(RSS/M) + k ln M over the M whitened fit residuals, k identifiable "
+           "parameters (lower is better; compare steps of one campaign)"),
+        _c("created_at", "timestamp[us, UTC]", "UTC", meaning="when the step was computed", reproducible=False))),
 )
 TABLES: dict[str, TableSchema] = {t.name: t for t in _TABLES}
 

@@ -167,6 +167,35 @@ class CalibrationResult:
         return pd.DataFrame(rows)
 
 
+ALTERNATION_ROUNDS = 6
+ALTERNATION_CONVERGED = 0.1  # stop when no parameter moves by more than this many standard uncertainties
+
+
+def alternate(machine: Machine, base: ErrorModel, measurements: Measurements, poses: Measurements,
+              specs: list[ParamSpec] | None = None, truth: ErrorModel | None = None,
+              rounds: int = ALTERNATION_ROUNDS) -> tuple[PdgeResult, PigeFit, ErrorModel]:
+    """PDGE extraction (eqs. 13–19) and the fit of the constant parameters (eq. 22), alternated.
+
+    The extraction of an axis' PDGE reads everything else from the current model: without the
+    constant errors it would put them into the swept axis' profile (a constant camera-frame offset,
+    e.g. from a principal-point error, turns with C and would become a once-per-turn PDGE of C).
+    So: extract with the model, fit the constants with the profiles fixed, extract again with the
+    fitted constants, until no parameter moves by more than ALTERNATION_CONVERGED of its
+    uncertainty (usually 3–5 rounds). Returns (PDGEs, fit, the model the PDGEs were extracted with)."""
+    extraction, x = base, None
+    for _ in range(rounds):
+        pdge = extract_pdges(machine, extraction, measurements, truth)
+        with_pdge = replace(base, pdge={**base.pdge, **pdge.profiles})
+        fit = identify_pige(machine, with_pdge, poses, specs, x0=x)
+        moved = np.abs(fit.fit.x - (0.0 if x is None else x)) / np.where(fit.fit.identifiable, fit.fit.uncertainty,
+                                                                           np.inf)
+        x = fit.fit.x
+        if np.nanmax(moved) < ALTERNATION_CONVERGED:
+            break
+        extraction = replace(fit.model, pdge=dict(base.pdge))
+    return pdge, fit, extraction
+
+
 def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | None = None,
               specs: list[ParamSpec] | None = None, base: ErrorModel | None = None) -> CalibrationResult:
     """PDGEs from the sweeps, then the constant parameters over the ``pige`` stage (camera 1).
@@ -181,17 +210,12 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
         from tasks.diagnosis.effect_fit import calibrate_with_effects
 
         return calibrate_with_effects(machine, measurements, base, truth, specs)
-    pdge = extract_pdges(machine, base, measurements, truth)
-    with_pdge = ErrorModel(pige=dict(base.pige), pdge={**base.pdge, **pdge.profiles}, effects=list(base.effects),
-                           joint_offsets=dict(base.joint_offsets), attachment_offsets=dict(base.attachment_offsets))
     poses = measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
-    fit = identify_pige(machine, with_pdge, poses, specs)
+    pdge, fit, extraction = alternate(machine, base, measurements, poses, specs, truth)
     truth_fit = None
     if truth is not None:
         clean = synthetic_measurements(machine, truth, measurements)
-        truth_pdge = extract_pdges(machine, base, clean)
-        truth_base = ErrorModel(pdge={**base.pdge, **truth_pdge.profiles}, effects=list(base.effects))
-        truth_fit = identify_pige(machine, truth_base,
-                                  clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA), specs)
-    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=base)
+        _, truth_fit, _ = alternate(machine, base, clean, clean.stage(*IDENTIFICATION_STAGES,
+                                                                      camera=IDENTIFICATION_CAMERA), specs)
+    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=extraction)
 

@@ -34,12 +34,13 @@ uncertainty u_c = √(u² + u_ref²). Two tests (:class:`DriftTolerance`):
 - **significance**: |Δ| > k·u_c (k = 2: a change that measurement noise explains with less than
   about 5 % probability).
 
-``rule`` records which tests the change exceeds: ``abs+sig``, ``abs``, ``sig`` or ``within``
-(``abs (u unknown)`` / ``within (u unknown)`` when u_c is unknown, so the significance test cannot
-be made), ``reference`` for the reference campaign's own rows and ``unavailable`` when either value
-is missing (unidentifiable). ``flagged`` applies the tolerance's ``require`` policy: ``both``
-(default: large enough to matter *and* not explained by noise; when u_c is unknown the absolute test
-decides alone), ``abs``, ``sig`` or ``either``.
+``rule`` records which tests the change exceeds: ``abs+sig``, ``abs``, ``sig`` or ``within``, with
+``(u unknown)`` when u_c is unknown (no significance test) and ``(no tolerance)`` when the unit has
+no absolute tolerance (an effect parameter in its own unit: no absolute test); ``reference`` for
+the reference campaign's own rows and ``unavailable`` when either value is missing
+(unidentifiable). ``flagged`` applies the tolerance's ``require`` policy: ``both`` (default: large
+enough to matter *and* not explained by noise; a test that cannot be made is left out, so the other
+decides alone; never flagged when neither can be made), ``abs``, ``sig`` or ``either``.
 """
 
 from __future__ import annotations
@@ -87,11 +88,9 @@ class DriftTolerance:
                 raise ValueError(f"DriftTolerance.{name} must be a positive number, not {value!r}")
 
     def absolute(self, unit: str) -> float:
-        """The absolute tolerance for ``unit`` ("um" or "arcsec")."""
-        tolerances = {"um": self.abs_um, "arcsec": self.abs_arcsec}
-        if unit not in tolerances:
-            raise ValueError(f"no absolute drift tolerance for unit {unit!r} (known: um, arcsec)")
-        return tolerances[unit]
+        """The absolute tolerance for ``unit``: ``abs_um`` for "um", ``abs_arcsec`` for "arcsec",
+        NaN for any other unit (an effect parameter's own unit: no absolute test)."""
+        return {"um": self.abs_um, "arcsec": self.abs_arcsec}.get(unit, np.nan)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -110,8 +109,9 @@ def _require(df: pd.DataFrame, columns, table: str) -> None:
 
 def pige_quantities(pige: pd.DataFrame) -> pd.DataFrame:
     """One row per campaign and ``pige`` table row (:data:`QUANTITY_COLUMNS`): quantity = the
-    parameter's name, kind = its kind (pige, constant, squareness, mount), value and uncertainty in
-    its unit (µm or arcsec); value and uncertainty NaN where ``identifiable`` is false."""
+    parameter's name, kind = its kind (pige, constant, squareness, mount, effect), value and
+    uncertainty in its unit (µm or arcsec; an effect parameter's own unit); value and uncertainty
+    NaN where ``identifiable`` is false."""
     if pige.empty:
         return pd.DataFrame(columns=list(QUANTITY_COLUMNS))
     _require(pige, ("campaign_id", "name", "kind", "unit", "value", "uncertainty", "identifiable"), "pige")
@@ -201,6 +201,13 @@ def _rules(delta: np.ndarray, u_c: np.ndarray, tol: np.ndarray, k: float) -> tup
     return above_abs, above_sig, known
 
 
+def _rule_name(above_abs: bool, above_sig: bool, u_known: bool, tol_known: bool) -> str:
+    """``abs+sig`` / ``abs`` / ``sig`` / ``within``, qualified by the tests that cannot be made."""
+    name = {(True, True): "abs+sig", (True, False): "abs", (False, True): "sig"}.get((above_abs, above_sig), "within")
+    missing = [text for text, ok in (("no tolerance", tol_known), ("u unknown", u_known)) if not ok]
+    return f"{name} ({', '.join(missing)})" if missing else name
+
+
 def flag_drift(quantities: pd.DataFrame, times: pd.Series, tolerance: DriftTolerance,
                reference: str | None = None) -> pd.DataFrame:
     """The drift table: every quantity of every campaign against the reference campaign.
@@ -210,7 +217,7 @@ def flag_drift(quantities: pd.DataFrame, times: pd.Series, tolerance: DriftToler
     campaign_id; default the earliest campaign. Returns :data:`DRIFT_COLUMNS`, campaigns in capture
     order: delta_from_reference = value − reference value, combined_uncertainty = √(u² + u_ref²),
     z = |Δ| / u_c, rule and flagged as in the module docstring. A quantity the reference lacks is
-    "unavailable". Raises ValueError for an unknown reference or unit.
+    "unavailable". Raises ValueError for an unknown reference campaign.
     """
     if quantities.empty:
         return pd.DataFrame(columns=list(DRIFT_COLUMNS))
@@ -231,13 +238,13 @@ def flag_drift(quantities: pd.DataFrame, times: pd.Series, tolerance: DriftToler
     available = np.isfinite(delta)
     is_ref = (q["campaign_id"] == reference).to_numpy()
 
-    names = np.where(above_abs & above_sig, "abs+sig", np.where(above_abs, "abs", np.where(above_sig, "sig",
-                                                                                          "within")))
-    rule = np.where(known, names, np.where(above_abs, "abs (u unknown)", "within (u unknown)"))
+    tol_known = np.isfinite(tol)
+    rule = np.array([_rule_name(*flags) for flags in zip(above_abs, above_sig, known, tol_known, strict=True)],
+                    dtype=object)
     rule = np.where(available, rule, "unavailable")
     rule = np.where(is_ref, "reference", rule)
-    policy = {"both": above_abs & (above_sig | ~known), "abs": above_abs, "sig": above_sig,
-              "either": above_abs | above_sig}[tolerance.require]
+    policy = {"both": (above_abs | ~tol_known) & (above_sig | ~known) & (tol_known | known),
+              "abs": above_abs, "sig": above_sig, "either": above_abs | above_sig}[tolerance.require]
     flagged = policy & available & ~is_ref
 
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -42,8 +42,8 @@ def _trend_panel(ax, rows: pd.DataFrame, ranks: dict[str, int], tolerance: Drift
     if len(ref):
         r = float(ref["value"].iloc[0])
         ax.axhline(r, color=colour if not band else "grey", lw=0.8, ls="--")
-        if band:
-            tol = tolerance.absolute(str(ref["unit"].iloc[0]))
+        tol = tolerance.absolute(str(ref["unit"].iloc[0]))
+        if band and np.isfinite(tol):
             ax.axhspan(r - tol, r + tol, color="grey", alpha=0.15, lw=0)
     flagged = rows[rows["flagged"].astype(bool)]
     if len(flagged):

@@ -152,6 +152,26 @@ def test_default_policy_needs_both_tests(drift):
     assert row(only_abs, LATER, "alpha_YZ").flagged and not row(only_abs, LATER, "gamma_YX").flagged
 
 
+def test_a_test_that_cannot_be_made_leaves_the_other_to_decide():
+    """An effect parameter in its own unit has no absolute tolerance; a missing uncertainty allows no
+    significance test."""
+    rows = pd.DataFrame([
+        {"campaign_id": c, "name": "pitch_cyclic:amplitude", "kind": "effect", "unit": "ppm", "value": v,
+         "uncertainty": 0.5, "identifiable": True} for c, v in ((REF, 1.0), (LATER, 4.0))] + [
+        {"campaign_id": c, "name": "delta_CX", "kind": "pige", "unit": "um", "value": v, "uncertainty": np.nan,
+         "identifiable": True} for c, v in ((REF, 0.0), (LATER, 9.0))])
+    d = drift_table(rows, pdge_table().iloc[:0], images_table(), DriftTolerance())
+    effect, pige = row(d, LATER, "pitch_cyclic:amplitude"), row(d, LATER, "delta_CX")
+    assert (effect.rule, effect.flagged, effect.z) == ("sig (no tolerance)", True, pytest.approx(3 / math.sqrt(0.5)))
+    assert (pige.rule, pige.flagged) == ("abs (u unknown)", True) and np.isnan(pige.z)
+    strict = drift_table(rows, pdge_table().iloc[:0], images_table(), DriftTolerance(require="abs"))
+    assert not row(strict, LATER, "pitch_cyclic:amplitude").flagged and row(strict, LATER, "delta_CX").flagged
+    both_missing = rows.assign(uncertainty=np.nan)
+    d = drift_table(both_missing, pdge_table().iloc[:0], images_table(), DriftTolerance())
+    r = row(d, LATER, "pitch_cyclic:amplitude")
+    assert (r.rule, r.flagged) == ("within (no tolerance, u unknown)", False)
+
+
 def test_unidentifiable_is_unavailable_not_flagged(drift):
     r = row(drift, LATER, "delta_AY")
     assert np.isnan(r.value) and np.isnan(r.delta_from_reference)
@@ -186,9 +206,6 @@ def test_explicit_reference_and_errors():
     assert row(d, LATER, "delta_AZ").rule == "reference"
     with pytest.raises(ValueError, match="reference campaign 'nope'"):
         drift_table(pige_table(), pdge_table(), images_table(), DriftTolerance(), reference="nope")
-    bad = pige_table().assign(unit="mm")
-    with pytest.raises(ValueError, match="unit 'mm'"):
-        drift_table(bad, pdge_table(), images_table(), DriftTolerance())
     with pytest.raises(ValueError, match="lacks the column"):
         drift_table(pige_table().drop(columns="uncertainty"), pdge_table(), images_table(), DriftTolerance())
     with pytest.raises(ValueError, match="require"):

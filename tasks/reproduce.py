@@ -16,9 +16,11 @@ SYNOPSIS::
    table's keys (tasks/lake_schema.py); integers, text and flags exactly; floats to a relative
    tolerance of 1e-9; NaN equals NaN. Timings (columns marked not reproducible) are not compared.
 
-The re-run uses the recorded OpenCV thread count: with more than one thread OpenCV's camera
-calibration differs from run to run by about 1e-6 px, which the identification amplifies to
-relative differences of 1e-4 and more, so a report made multi-threaded may not reproduce.
+The re-run uses the recorded OpenCV thread count. OpenCV's multi-threaded camera calibration
+differs from call to call by about 1e-6 px, which the identification amplifies to relative
+differences of 1e-4 and more; the measure flow therefore calibrates and estimates poses with one
+OpenCV/BLAS thread (tasks/vision_steps.one_numeric_thread, since commit 70a1d86). Reports made
+before that may not reproduce.
 
 Exit codes of the command: 0 every number reproduced, 1 inputs changed or numbers differ, 2 the
 report or its campaign cannot be read.
@@ -191,9 +193,21 @@ def rerun(recorded: Recorded, workdir: Path, campaign: Path | None = None) -> tu
     with temporary_settings(updates={PREFECT_TASKS_REFRESH_CACHE: True}), opencv_threads(threads):
         summary = calibrate_campaign(str(folder), results_root=str(workdir / "results"), detector=recorded.detector,
                                      reports_root=str(workdir / "reports"), run=RUN_NAME)
-    if any(summary.get("cached", {}).values()):
-        raise ReproduceError(f"the re-run read Prefect's cache ({summary['cached']}): it would prove nothing")
+    if cached := cached_steps(summary.get("cached", {})):
+        raise ReproduceError(f"the re-run read Prefect's cache ({', '.join(cached)}): it would prove nothing")
     return Path(summary["markdown"]).parent, summary
+
+
+def cached_steps(cached: dict[str, Any], prefix: str = "") -> list[str]:
+    """The steps a calibrate summary's ``cached`` entry reports as served from the cache: flags that
+    are True and counts above 0, nested dicts (a subflow's counts) included, as "measure.detect"."""
+    out = []
+    for key, value in cached.items():
+        if isinstance(value, dict):
+            out += cached_steps(value, f"{prefix}{key}.")
+        elif value is True or (isinstance(value, int | float) and not isinstance(value, bool) and value > 0):
+            out.append(f"{prefix}{key}")
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -361,5 +375,6 @@ def reproduce_report(report_dir: str | Path, campaign: str | Path | None = None,
     threads = recorded.parameters.get("environment", {}).get("opencv_threads", 0)
     if comparison.differences and threads > 1:
         echo(f"note: the report was made with {threads} OpenCV threads; OpenCV's multi-threaded camera "
-             "calibration is not bitwise repeatable (about 1e-6 px), and the identification amplifies that")
+             "calibration is not bitwise repeatable (about 1e-6 px, amplified by the identification), so a report "
+             "made before the measure flow pinned it to one thread may not reproduce")
     return 1 if comparison.differences else 0

@@ -127,8 +127,6 @@ def calibrated_campaign(tmp_path_factory, request) -> CalibratedCampaign:
     """A small simulated campaign (47 images: 1 calibration trial of 6 views per camera, 4 positions
     per axis sweep, 12 five-axis and 3 validation poses) run once through
     ``flows.calibrate.calibrate_campaign`` (run name "fixture"); about 25 s plus the Prefect server.
-    OpenCV runs single-threaded meanwhile, so that the numbers are bitwise repeatable (its
-    multi-threaded camera calibration is not; see tests/test_reproduce.py).
 
     Computed once per test run: under pytest-xdist the first worker to need it calibrates (under
     its ``prefect_harness``) while the others wait on a file lock, then every worker reads the
@@ -144,7 +142,6 @@ def calibrated_campaign(tmp_path_factory, request) -> CalibratedCampaign:
             request.getfixturevalue("prefect_harness")
             from flows.calibrate import calibrate_campaign
             from tasks.campaign_plan import CampaignPlan
-            from tasks.reproduce import opencv_threads
             from tasks.simulate import write_campaign
 
             shutil.rmtree(root, ignore_errors=True)
@@ -152,9 +149,8 @@ def calibrated_campaign(tmp_path_factory, request) -> CalibratedCampaign:
                                 pige_poses=12, validation_poses=3)
             folder = write_campaign(root / "campaigns" / CALIBRATED_CAMPAIGN_ID, CALIBRATED_CAMPAIGN_ID, seed=1,
                                     size="small", plan=plan)
-            with opencv_threads(1):
-                summary = calibrate_campaign(str(folder), results_root=str(root / "results"),
-                                             reports_root=str(root / "reports"), run="fixture")
+            summary = calibrate_campaign(str(folder), results_root=str(root / "results"),
+                                         reports_root=str(root / "reports"), run="fixture")
             done.write_text(json.dumps(summary, default=str))
     return CalibratedCampaign(root / "campaigns" / CALIBRATED_CAMPAIGN_ID, root / "results", root / "reports",
                               json.loads(done.read_text()))

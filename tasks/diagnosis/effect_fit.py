@@ -19,8 +19,9 @@ extraction and eq. 22 are two separate estimators:
    where ∂P_j/∂θ_p is the extraction's own linear response (:mod:`tasks.diagnosis.pdge_response`)
    to the change θ_p makes in axis j's sweep; the LM therefore sees exactly the part of the effect
    that the extraction cannot absorb (and reports the effect unidentifiable when it absorbs all);
-3. repeat from 1 at the fitted θ until θ moves by less than 5 % of its uncertainty (at most
-   ``rounds`` times; usually twice).
+3. repeat from 1 with the fitted constants and θ in the extraction's model (the extraction reads
+   everything but the swept axis from the model) until no parameter moves by more than 0.1 of its
+   standard uncertainty (at most ``rounds`` times).
 
 An effect with a phase (pitch_cyclic, encoder harmonics) is first fitted as two copies at phases
 φ₀ and φ₀ + 90° whose amplitudes are linear (:func:`tasks.diagnosis.effect_params.combine_quadrature`),
@@ -32,6 +33,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from tasks.diagnosis.effect_params import (
     amplitude_names,
@@ -48,7 +50,7 @@ from tasks.diagnosis.suggestions import identifying_poses
 from tasks.effects import Effect, camera_changes
 from tasks.error_model import ErrorModel
 from tasks.identification.measurements import Measurements
-from tasks.identification.parameters import ParamSpec, default_parameters
+from tasks.identification.parameters import ParamSpec, apply_parameters, default_parameters
 from tasks.identification.pdge_extraction import TabulatedProfile, extract_pdges, measured_error_motions
 from tasks.identification.pige_identification import (
     IDENTIFICATION_CAMERA,
@@ -59,7 +61,8 @@ from tasks.identification.pige_identification import (
 )
 from tasks.machine import Machine
 
-CONVERGED = 0.05  # stop when θ moves by less than this fraction of its standard uncertainty
+CONVERGED = 0.1  # stop when no parameter moves by more than this fraction of its standard uncertainty
+ROUNDS = 6
 
 
 def acts(machine: Machine, effect: Effect, name: str, meas: Measurements) -> bool:
@@ -144,7 +147,8 @@ def profile_derivatives(machine: Machine, ext: ErrorModel, measurements: Measure
 def _fit_round(machine, measurements, poses, base, effects, const_specs, x_const, truth, fit_phase):
     """One extraction + coupled LM at the effects' current values. Returns (fit, specs, pdge result, ext model)."""
     specs_e = effect_parameters(machine, effects, poses, fit_phase)
-    ext = _model(base, effects)
+    # the extraction reads everything but the swept axis from the model: constants and effects included
+    ext = apply_parameters(_model(base, effects), const_specs, x_const)
     corrected = imaging_corrected(machine, ext, measurements)
     pdge = extract_pdges(machine, ext, corrected, truth)
     responses = axis_responses(machine, ext, corrected)
@@ -205,10 +209,16 @@ def _join_phases(split: list[Effect], pairs) -> list[Effect]:
 
 def calibrate_with_effects(machine: Machine, measurements: Measurements, base: ErrorModel,
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
-                           rounds: int = 3) -> CalibrationResult:
+                           rounds: int = ROUNDS) -> CalibrationResult:
     """The calibration of :func:`tasks.identification.pige_identification.calibrate` with the parameters
     of ``base.effects`` fitted too (their values in ``base`` are the starting point). The pige table
-    lists them with kind "effect"; ``notes`` says which the poses cannot identify and what would."""
+    lists them with kind "effect"; ``notes`` says which the poses cannot identify and what would.
+    Runs with one BLAS thread (many small products; two contending threads are far slower)."""
+    with threadpool_limits(limits=1):
+        return _calibrate_with_effects(machine, measurements, base, truth, specs, rounds)
+
+
+def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -> CalibrationResult:
     const_specs = specs or default_parameters()
     poses = measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
     effects = list(base.effects)
@@ -223,13 +233,11 @@ def calibrate_with_effects(machine: Machine, measurements: Measurements, base: E
     for _ in range(max(rounds, 1)):
         fit, specs_e, pdge, ext = _fit_round(machine, measurements, poses, base, effects, const_specs, x_const,
                                              truth, fit_phase=True)
-        theta_ref = np.array([effects[s.component][s.param] for s in specs_e])
-        theta = fit.fit.x[n_const:]
+        before = np.concatenate([x_const, [effects[s.component][s.param] for s in specs_e]])
         x_const = fit.fit.x[:n_const]
-        effects = _set(effects, specs_e, theta)
-        u = fit.fit.uncertainty[n_const:]
-        moved = np.abs(theta - theta_ref)
-        if np.all((moved <= CONVERGED * np.where(np.isfinite(u), u, np.inf)) | (moved == 0)):
+        effects = _set(effects, specs_e, fit.fit.x[n_const:])
+        u = np.where(fit.fit.identifiable, fit.fit.uncertainty, np.inf)
+        if np.all(np.abs(fit.fit.x - before) <= CONVERGED * u):
             break
     notes = []
     for i, s in enumerate(specs_e):
@@ -239,10 +247,9 @@ def calibrate_with_effects(machine: Machine, measurements: Measurements, base: E
                          f"(the sweeps' PDGE profiles and the constant parameters absorb it, or no camera sees it); "
                          f"poses that would identify it: {identifying_poses(e)}.")
     truth_fit = None
-    if truth is not None:
+    if truth is not None:  # the truth in the fit's gauge: the same calibration of its exact poses
+        from tasks.identification.pige_identification import calibrate
+
         clean = synthetic_measurements(machine, truth, measurements)
-        truth_ext = ErrorModel(effects=list(truth.effects))
-        truth_pdge = extract_pdges(machine, truth_ext, imaging_corrected(machine, truth_ext, clean))
-        truth_fit = identify_pige(machine, ErrorModel(pdge=truth_pdge.profiles, effects=list(truth.effects)),
-                                  clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA), const_specs)
+        truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
     return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)

@@ -20,7 +20,8 @@ of its signature; a linear or slowly varying one is swallowed whole.
 
 λ_jc is found as scipy's ``make_smoothing_spline`` finds it (the same criterion,
 GCV(λ) = n‖y − H_λ y‖² / (n − tr H_λ)², minimised by the same bounded search on [0, n]) on
-the mean error motions of the extraction's model, so H_jc is the smoother the extraction used.
+the mean error motions of the extraction's model, so H_jc is the smoother the extraction used
+(tests/test_diagnosis.py checks the profiles it gives against the extraction's).
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import make_smoothing_spline
 from scipy.optimize import minimize_scalar
 
 from tasks.error_model import COMPONENT_SCALE, ErrorModel
@@ -39,22 +39,46 @@ from tasks.machine import AXIS_ORDER, Machine
 MIN_SMOOTHED = 5  # fewer positions: the extraction does not smooth (_smooth in pdge_extraction)
 
 
+def penalty_matrix(x: np.ndarray) -> np.ndarray:
+    """(K, K) roughness matrix R of the natural cubic spline through abscissas ``x``: ∫ f''² = gᵀ R g for
+    the spline's values g at x (Green & Silverman's Q T⁻¹ Qᵀ)."""
+    h = np.diff(x)
+    n = x.size
+    Q = np.zeros((n, n - 2))
+    T = np.zeros((n - 2, n - 2))
+    for j in range(1, n - 1):
+        Q[j - 1, j - 1] = 1.0 / h[j - 1]
+        Q[j, j - 1] = -1.0 / h[j - 1] - 1.0 / h[j]
+        Q[j + 1, j - 1] = 1.0 / h[j]
+        T[j - 1, j - 1] = (h[j - 1] + h[j]) / 3.0
+        if j < n - 2:
+            T[j - 1, j] = T[j, j - 1] = h[j] / 6.0
+    return Q @ np.linalg.solve(T, Q.T)
+
+
 def hat_matrix(x: np.ndarray, w: np.ndarray, lam: float) -> np.ndarray:
-    """(K, K) hat matrix of the weighted cubic smoothing spline through abscissas ``x`` at roughness ``lam``:
-    fitted values = H @ y. w: (K,) weights (normalised to mean 1, as the extraction does)."""
-    k = x.size
-    return make_smoothing_spline(x, np.eye(k), w=w, lam=lam)(x)
+    """(K, K) hat matrix of the weighted cubic smoothing spline through abscissas ``x`` at roughness ``lam``
+    (minimising Σ wᵢ (yᵢ − f(xᵢ))² + λ ∫ f''², as ``scipy.interpolate.make_smoothing_spline``):
+    fitted values = H @ y = (W + λ R)⁻¹ W y. w: (K,) weights (normalised to mean 1, as the extraction does)."""
+    W = np.diag(w)
+    return np.linalg.solve(W + lam * penalty_matrix(x), W)
 
 
 def gcv_roughness(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
-    """λ minimising GCV(λ) = (1/n)‖y − H_λ y‖² / (1 − tr H_λ / n)² on [0, n] (scipy's criterion and search)."""
+    """λ minimising GCV(λ) = (1/n)‖y − H_λ y‖² / (1 − tr H_λ / n)² on [0, n] (scipy's criterion and search).
+
+    With S = W^(-1/2) R W^(-1/2) = U diag(d) Uᵀ: H_λ = W^(-1/2) U diag(1/(1 + λd)) Uᵀ W^(1/2), so each
+    evaluation costs O(K²)."""
     n = x.size
-    scale = np.max(np.abs(y)) or 1.0  # GCV is scale free in y; keep the numbers near 1
+    sw = np.sqrt(w)
+    d, U = np.linalg.eigh(penalty_matrix(x) / np.outer(sw, sw))
+    d = np.clip(d, 0.0, None)
+    z = U.T @ (sw * y / (np.max(np.abs(y)) or 1.0))  # GCV is scale free in y
 
     def gcv(lam: float) -> float:
-        H = hat_matrix(x, w, lam)
-        res = y / scale - H @ (y / scale)
-        return float(res @ res / n / (1.0 - np.trace(H) / n) ** 2)
+        shrink = lam * d / (1.0 + lam * d)
+        res = (U @ (shrink * z)) / sw
+        return float(res @ res / n / (1.0 - np.sum(1.0 / (1.0 + lam * d)) / n) ** 2)
 
     return float(minimize_scalar(gcv, bounds=(0, n), method="bounded").x)
 
@@ -80,7 +104,10 @@ class AxisResponse:
     """The linear extraction map of one axis' sweep.
 
     sweep: the sweep's images (stage ``pdge``, group = axis). q: (K,) sweep positions (mm or rad).
-    average: (K, N_j) mean over repeats. hat: (6, K, K) per component. gauge: (6K, 6K)."""
+    average: (K, N_j) mean over repeats. hat: (6, K, K) per component. gauge: (6K, 6K).
+    operator: (6K, 6N_j) the whole map G H A on row-major flattened (K, 6) and (N_j, 6) arrays.
+    smoothing_cov: (6K, 6K) the smoothing bias allowance of the referred profile (see
+    :func:`smoothing_bias_covariance`)."""
 
     axis: str
     sweep: Measurements
@@ -88,17 +115,58 @@ class AxisResponse:
     average: np.ndarray
     hat: np.ndarray
     gauge: np.ndarray
+    operator: np.ndarray | None = None
+    smoothing_cov: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.operator is None:
+            k, n = self.average.shape
+            HA = self.hat @ self.average  # (6, K, N_j): smoothing of the repeat means, per component
+            full = np.zeros((k, 6, n, 6))
+            for c in range(6):
+                full[:, c, :, c] = HA[c]
+            self.operator = self.gauge @ full.reshape(6 * k, 6 * n)
 
     def profile_change(self, dE: np.ndarray) -> np.ndarray:
         """(B, N_j, 6) changes of the sweep's error motions -> (B, K, 6) changes of the referred profile."""
-        mean = np.einsum("kn,bnc->bkc", self.average, dE)
-        smooth = np.einsum("ckl,blc->bkc", self.hat, mean)
-        b, k = smooth.shape[:2]
-        return (smooth.reshape(b, k * 6) @ self.gauge.T).reshape(b, k, 6)
+        b = dE.shape[0]
+        return (dE.reshape(b, -1) @ self.operator.T).reshape(b, -1, 6)
 
     def interpolation(self, positions: np.ndarray) -> np.ndarray:
         """(N, K) weights of the tabulated profile's natural cubic spline at ``positions`` (mm or rad)."""
         return TabulatedProfile(self.q, np.eye(self.q.size))(np.asarray(positions, dtype=float))
+
+
+def smoothing_bias_covariance(hat: np.ndarray, variance: np.ndarray, count: np.ndarray,
+                              gauge: np.ndarray) -> np.ndarray:
+    """(6K, 6K) what a smoothing spline's Bayesian posterior covariance adds to its sampling covariance.
+
+    Wahba's Bayesian reading of the smoothing spline (the roughness penalty as a prior) gives the
+    fitted values the covariance H C_y instead of the sampling one H C_y Hᵀ: the difference
+    H C_y (I − Hᵀ) ⪰ 0 is an allowance for the smoothing bias (what the spline smooths away of the
+    true profile, on average). Per component c with C_y = diag(variance_c / count) (the
+    extraction's pooled within-position variance), then through the gauge."""
+    k = hat.shape[1]
+    blocks = np.zeros((k, 6, k, 6))
+    for c in range(6):
+        Cy = np.diag(variance[c] / count)
+        HC = hat[c] @ Cy
+        extra = HC - HC @ hat[c].T
+        blocks[:, c, :, c] = 0.5 * (extra + extra.T)
+    B = blocks.reshape(6 * k, 6 * k)
+    return gauge @ B @ gauge.T
+
+
+def pooled_variance(E: np.ndarray, inverse: np.ndarray, k: int) -> np.ndarray:
+    """(6,) within-position variance of the error motions E (N_j, 6) over repeats, as the extraction
+    pools it (1 repeat: half the variance of consecutive differences)."""
+    mean = np.zeros((k, 6))
+    np.add.at(mean, inverse, E)
+    mean /= np.bincount(inverse, minlength=k)[:, None]
+    dof = E.shape[0] - k
+    if dof >= 3:
+        return np.maximum(((E - mean[inverse]) ** 2).sum(axis=0) / dof, 1e-18)
+    return np.maximum(np.var(np.diff(mean, axis=0), axis=0) / 2, 1e-18) if k > 2 else np.ones(6)
 
 
 def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis: str) -> AxisResponse:
@@ -118,7 +186,9 @@ def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis
         mean = average @ E
         for c in range(6):
             hat[c] = hat_matrix(q, w, gcv_roughness(q, mean[:, c], w))
-    return AxisResponse(axis, sweep, q, average, hat, gauge_operator(machine, axis, q))
+    gauge = gauge_operator(machine, axis, q)
+    bias = smoothing_bias_covariance(hat, pooled_variance(E, inverse, k), count, gauge)
+    return AxisResponse(axis, sweep, q, average, hat, gauge, smoothing_cov=bias)
 
 
 def axis_responses(machine: Machine, model: ErrorModel, measurements: Measurements) -> dict[str, AxisResponse]:

@@ -24,3 +24,5 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python bench/bench_kinematics.py
 	$(VENV)/bin/python bench/bench_render.py
+	$(VENV)/bin/python bench/bench_identification.py
+	$(VENV)/bin/python bench/bench_formulations.py

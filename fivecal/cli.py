@@ -232,12 +232,26 @@ def calibrate(
     detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
     reports: Annotated[Path, typer.Option(help="reports root; the report goes to <reports>/<campaign_id>/<run>/")]
     = Path("reports"),
+    add_effect: Annotated[list[str] | None, typer.Option(help="add an effect to the model and fit it: "
+                                                               "family:key=value,... (repeatable)")] = None,
+    effect_module: Annotated[list[str] | None, typer.Option(help="import a module that registers user-written "
+                                                                  "effect families (repeatable)")] = None,
 ) -> None:
     """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
+    from tasks.effects import load_effect_modules, parse_effect
+
+    try:
+        load_effect_modules(effect_module or [])
+        for spec in add_effect or []:
+            parse_effect(spec)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--add-effect / --effect-module") from None
+
     def run():
         from flows.calibrate import calibrate_campaign
 
-        return calibrate_campaign(str(campaign), None if results is None else str(results), detector, str(reports))
+        return calibrate_campaign(str(campaign), None if results is None else str(results), detector, str(reports),
+                                  effects=list(add_effect or []), effect_modules=list(effect_module or []))
 
     summary = _on_valid_campaign(campaign, run)
     typer.echo(f"campaign {summary['campaign_id']}: fit σ² = {summary['sigma2']:.3g} (1 = as the pose covariances "
@@ -248,6 +262,41 @@ def calibrate(
     for name, path in summary["tables"].items():
         typer.echo(f"{name} table: {path}")
     typer.echo(f"report: {summary['report']}\nmarkdown: {summary['markdown']}")
+
+
+@app.command()
+def diagnose(
+    campaign: Annotated[Path, typer.Argument(help="campaign folder")],
+    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
+    = None,
+    reports: Annotated[Path, typer.Option(help="reports root")] = Path("reports"),
+    add_effect: Annotated[list[str] | None, typer.Option(help="effects already in the model (repeatable)")] = None,
+    effect_module: Annotated[list[str] | None, typer.Option(help="module registering user effects (repeatable)")]
+    = None,
+) -> None:
+    """Which physical effect the model lacks: calibrate (cached), then rank every catalogue effect
+    against the residuals and say the verdict in words; writes the `diagnosis` table."""
+    from tasks.effects import load_effect_modules, parse_effect
+
+    try:
+        load_effect_modules(effect_module or [])
+        for spec in add_effect or []:
+            parse_effect(spec)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--add-effect / --effect-module") from None
+
+    def run():
+        from flows.calibrate import calibrate_campaign
+
+        return calibrate_campaign(str(campaign), None if results is None else str(results), "rrht", str(reports),
+                                  effects=list(add_effect or []), effect_modules=list(effect_module or []))
+
+    summary = _on_valid_campaign(campaign, run)
+    for sentence in summary["diagnosis"]:
+        typer.echo(sentence)
+    if summary["diagnosis_best"]:
+        typer.echo(f"next: fivecal calibrate {campaign} --add-effect '{summary['diagnosis_best']}'")
+    typer.echo(f"diagnosis table: {summary['tables']['diagnosis']}")
 
 
 @app.command()

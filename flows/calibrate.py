@@ -25,18 +25,24 @@ from tasks.calibration_steps import (
     IDENTIFICATION_CODE_VERSION,
     capture_task,
     compensate_task,
+    cross_validate_task,
+    diagnose_task,
     formulations_task,
     identify_task,
     report_task,
 )
 from tasks.compensation import compensation_table, desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
+from tasks.effects import load_effect_modules, parse_effect
 from tasks.error_model import ErrorModel
 from tasks.identification.measurements import assemble_measurements
 from tasks.identification.pige_identification import null_space_sentences
 from tasks.ingest import load_campaign_metadata
+from tasks.model_ladder import append_step, ladder_step
 from tasks.report import ReportData
-from tasks.results_lake import read_table, write_partition
+from tasks.report.residual_figures import residual_report
+from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
+from tasks.results_lake import partition_path, read_table, write_partition
 from tasks.verification import capture_errors, true_errors, vbm_errors, verification_table
 from tasks.verification_capture import is_simulated
 from tasks.vision import content_key, expected_rotations, nominal_machine, plates_by_camera
@@ -69,12 +75,20 @@ def _measure_capture(folder: Path, results_root: str | None, cameras: dict, dete
 
 @flow(name="calibrate-campaign", task_runner=ThreadPoolTaskRunner(max_workers=os.cpu_count() or 2))
 def calibrate_campaign(campaign: str, results_root: str | None = None, detector: str = "rrht",
-                       reports_root: str = "reports", run: str | None = None) -> dict[str, Any]:
-    """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path."""
+                       reports_root: str = "reports", run: str | None = None, effects: list[str] | None = None,
+                       effect_modules: list[str] | None = None) -> dict[str, Any]:
+    """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path.
+
+    effects: effect specs (``family:key=value,...``) added to the model, their amplitudes fitted with
+    the constant parameters (``fivecal calibrate --add-effect``). effect_modules: dotted module paths
+    imported first, so that user-written effect families register themselves. Adding an effect re-runs
+    the fit, its followers and the report; the image work is served from the cache."""
     logger = get_run_logger()
+    load_effect_modules(effect_modules or [])
+    base = ErrorModel(effects=[parse_effect(s) for s in effects or []])
     folder = Path(campaign).resolve()
     root = None if results_root is None else Path(results_root)
-    measure_campaign(str(folder), results_root, detector)
+    measured = measure_campaign(str(folder), results_root, detector)
     metadata = load_campaign_metadata(folder)
     campaign_id = metadata["campaign_id"]
     machine = nominal_machine(metadata)
@@ -89,7 +103,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
 
     measurements = assemble_measurements(images, pose_table)
     logger.info(f"identifying: {len(measurements)} poses ({(measurements.table.stage == 'pige').sum()} five-axis)")
-    ident = identify_task.submit(machine, measurements, truth)
+    ident = identify_task.submit(machine, measurements, truth, base)
     result = ident.result()
     fit = result.pige.fit
     logger.info(f"PIGE fit: {fit.iterations} LM iterations, σ² = {fit.sigma2:.3g}, "
@@ -103,7 +117,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     desired = desired_tip_poses(machine, commands)
     parts = {("before", "vbm"): (ids, vbm_errors(machine, result.model, desired, commands, validation.T,
                                                  validation.cov, VALIDATION_CAMERA))}
-    cached = {"identify": ident.state.name == "Cached", "compensate": comp.state.name == "Cached"}
+    cached = {"measure": measured["cached"], "identify": ident.state.name == "Cached",
+              "compensate": comp.state.name == "Cached"}
     if simulated:
         logger.info(f"simulator renders the verification capture of {len(ids)} compensated poses")
         capture_id = "compensated-" + content_key(compensated.round(9).tolist())[:12]
@@ -123,13 +138,35 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
 
     provenance = {"fivecal_version": fivecal.__version__, "detector": detector, "campaign": str(folder),
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
-                  "identification_code": IDENTIFICATION_CODE_VERSION}
+                  "identification_code": IDENTIFICATION_CODE_VERSION, "effects": [e.spec() for e in base.effects],
+                  "effect_modules": list(effect_modules or [])}
     pdge_table, pige_table = result.pdge.table, result.pige_table()
     tables = {}
     for name, df in (("pdge", pdge_table), ("pige", pige_table),
                      ("compensation", compensation_table(ids, commands, compensated)),
                      ("verification", verification), ("formulations", formulations)):
         tables[name] = str(write_partition(name, campaign_id, df, provenance, root))
+
+    # where the model fails: residuals against everything they could depend on, and the ladder
+    dots = read_table("dots", root, campaign_id)
+    residuals = pose_residual_table(machine, result.model, measurements, dots)
+    dot_residuals = dot_residual_table(dots, measurements, cameras, plates_of(machine))
+    tables["residuals"] = str(write_partition("residuals", campaign_id, residuals, provenance, root))
+    tables["dot_residuals"] = str(write_partition("dot_residuals", campaign_id, dot_residuals, provenance, root))
+    cv = cross_validate_task.submit(machine, result.model, result.pige.specs, measurements)
+    cv_rms = cv.result()
+    cached["cross_validate"] = cv.state.name == "Cached"
+    ladder = append_step(campaign_id, ladder_step(machine, result.model, fit, measurements, cv_rms=cv_rms),
+                         provenance, root)
+    tables["model_ladder"] = str(partition_path("model_ladder", campaign_id, root))
+    sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras)
+    logger.info("diagnosis: scoring every catalogue effect the model lacks")
+    diag_future = diagnose_task.submit(machine, measurements, result)
+    diagnosis = diag_future.result()
+    cached["diagnose"] = diag_future.state.name == "Cached"
+    tables["diagnosis"] = str(write_partition("diagnosis", campaign_id, diagnosis.table, provenance, root))
+    sections = [("What the model lacks (diagnosis)", "\n\n".join(diagnosis.sentences)), *sections]
+    logger.info("diagnosis:\n" + "\n".join(diagnosis.sentences))
 
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out_dir = Path(reports_root) / campaign_id / run
@@ -138,10 +175,13 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                       detector_comparison=_read_optional("detector_comparison", root, campaign_id),
                       formulations=formulations, identifiability=null_space_sentences(result.pige.specs, fit),
                       provenance={**provenance, "tables": tables}, simulated=simulated,
-                      images=images, compensation=compensation_table(ids, commands, compensated))
+                      images=images, compensation=compensation_table(ids, commands, compensated),
+                      extra_sections=sections, extra_figures=figures)
     paths = report_task(out_dir, data)
     summary_rows = verification.groupby(["phase", "source"])[["position_um", "orientation_arcsec"]].mean()
     logger.info(f"verification means:\n{summary_rows.round(2).to_string()}")
     return {"campaign_id": campaign_id, "report": str(paths["html"]), "markdown": str(paths["markdown"]),
+            "cv_rms": cv_rms, "effects": [e.spec() for e in result.model.effects],
+            "diagnosis": diagnosis.sentences, "diagnosis_best": diagnosis.best,
             "tables": tables, "cached": cached, "sigma2": fit.sigma2,
             "verification_means": summary_rows.round(3).reset_index().to_dict("records")}

@@ -16,6 +16,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from tasks.compensation import compensate
+from tasks.effects import EFFECTS
 from tasks.error_model import ErrorModel
 from tasks.formulations import compare_formulations
 from tasks.identification.measurements import Measurements, assemble_measurements
@@ -72,6 +73,29 @@ def capture_task(campaign_folder: Path, out_folder: Path, image_ids: list[str], 
 def formulations_task(machine: Machine, model: ErrorModel, commands: np.ndarray) -> pd.DataFrame:
     """Table 5: local PoE vs Denavit–Hartenberg vs global PoE on the identified model."""
     return compare_formulations(machine, model, commands)
+
+
+@task(name="cross-validate", persist_result=True,
+      cache_key_fn=lambda c, p: _key("cv", p["model"].to_dict(), [s.name for s in p["specs"]],
+                                     p["measurements"].table,
+                                     pd.DataFrame(p["measurements"].T.reshape(len(p["measurements"]), -1)),
+                                     p["machine"].source))
+def cross_validate_task(machine: Machine, model: ErrorModel, specs: list, measurements: Measurements) -> float:
+    """Cross-validated RMS of the whitened five-axis residuals (:func:`tasks.model_ladder.cross_validated_rms`)."""
+    from tasks.model_ladder import cross_validated_rms
+
+    return cross_validated_rms(machine, model, specs, measurements)
+
+
+@task(name="diagnose", persist_result=True,
+      cache_key_fn=lambda c, p: _key("diagnose", p["result"].model.to_dict(), p["measurements"].table,
+                                     pd.DataFrame(p["measurements"].T.reshape(len(p["measurements"]), -1)),
+                                     p["machine"].source, sorted(EFFECTS)))
+def diagnose_task(machine: Machine, measurements: Measurements, result: CalibrationResult):
+    """Which catalogue effect the model lacks (:func:`tasks.diagnosis.diagnose.diagnose`)."""
+    from tasks.diagnosis.diagnose import diagnose
+
+    return diagnose(machine, measurements, result)
 
 
 @task(name="write-report", cache_policy=NO_CACHE, persist_result=False)

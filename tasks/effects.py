@@ -354,3 +354,17 @@ def catalogue_text() -> str:
             unit = f" [{p.unit}]" if p.unit else ""
             lines.append(f"    {p.name}{unit}: {p.doc}{choice} ({req})")
     return "\n".join(lines)
+
+
+def load_effect_modules(modules) -> list[str]:
+    """Import user modules (dotted paths, e.g. ``mylab.effects``) so that the effect families they
+    define register themselves with :func:`register`; returns the families now known. A module that
+    cannot be imported raises ``ValueError`` naming it."""
+    import importlib
+
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ImportError as e:
+            raise ValueError(f"effect module {name!r} could not be imported: {e}") from None
+    return sorted(EFFECTS)

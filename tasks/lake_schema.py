@@ -352,6 +352,43 @@ _TABLES = (
         _c("bic", "float64", meaning="M ln(RSS/M) + k ln M over the M whitened fit residuals, k identifiable "
            "parameters (lower is better; compare steps of one campaign)"),
         _c("created_at", "timestamp[us, UTC]", "UTC", meaning="when the step was computed", reproducible=False))),
+    TableSchema("diagnosis", 1, "candidate effect the model lacks, scored against the fit's residual",
+                "tasks/diagnosis/diagnose.py (fivecal calibrate / fivecal diagnose)", (PARTITION, "rank"), (
+        _i("rank", "1 = first accepted effect or, with none accepted, the strongest candidate"),
+        _s("family", "effect family (tasks/effects.py or a user module)"),
+        _s("axis", "axis (or camera) the candidate acts on; empty when the family has none"),
+        _s("spec", "canonical spec with the scanned period/harmonic/driver and fitted amplitudes"),
+        _c("score", "float64", meaning="score statistic: residual sum of squares the candidate removes, with the "
+           "model's own columns projected out (whitened units)"),
+        _c("p_value", "float64", meaning="F-test p-value (before the Bonferroni factor over the variants tried)"),
+        _c("delta_bic", "float64", meaning="BIC with the candidate minus BIC without (negative: better)"),
+        _c("predicted_rms", "float64", meaning="whitened residual RMS predicted after adding it (1 = noise level)"),
+        _c("cv_rms", "float64", meaning="cross-validated whitened RMS with it (NaN: not cross-validated)"),
+        _c("explained", "float64", meaning="fraction of the residual's structure it explains (0..1)"),
+        _i("step", "acceptance round the row was scored in"),
+        _c("accepted", "bool", meaning="accepted (significant, ΔBIC < −10, confirmed by cross-validation)"),
+        _c("significant", "bool", meaning="p below alpha after the Bonferroni factor"),
+        _s("group", "name of the group of candidates this campaign cannot tell apart (empty: none)"),
+        _c("absorbed", "bool", meaning="the PDGE splines and constant parameters already reproduce it"),
+        _c("identifiable", "bool", meaning="the campaign's poses identify it"),
+        _c("visible", "float64", meaning="fraction of its signature left after projecting out the model's columns"),
+        _s("amplitudes", "fitted amplitudes with their units"),
+        _s("sentence", "what the row means, in words"))),
+    TableSchema("drift", 1, "quantity × campaign, against the reference campaign",
+                "tasks/recalibration_steps.py (fivecal recalibrate / serve-recalibration)", (PARTITION, "quantity"), (
+        _c("time", "timestamp[us, UTC]", "UTC", meaning="the campaign's first image timestamp"),
+        _s("quantity", "PIGE name, or '<axis>.<component>.<mean|std|max>' of a PDGE"),
+        _s("kind", "the pige table's kind (pige, constant, mount, effect) or 'pdge'"),
+        _s("table", "'pige' or 'pdge'"),
+        _c("value", "float64", meaning="in `unit`; NaN when unidentifiable"),
+        _c("uncertainty", "float64", meaning="standard uncertainty (k = 1), in `unit`"),
+        _s("unit", "'um' or 'arcsec' (an effect parameter: its own unit)"),
+        _s("reference_campaign_id", "the campaign drift is measured from"),
+        _c("delta_from_reference", "float64", meaning="value − reference value, in `unit`"),
+        _c("combined_uncertainty", "float64", meaning="sqrt(u² + u_ref²), in `unit`"),
+        _c("z", "float64", meaning="|Δ| / combined_uncertainty"),
+        _c("flagged", "bool", meaning="moved past tolerance (docs/recalibration.md)"),
+        _s("rule", "abs+sig | abs | sig | within [(u unknown)/(no tolerance)] | reference | unavailable"))),
 )
 TABLES: dict[str, TableSchema] = {t.name: t for t in _TABLES}
 

@@ -155,7 +155,10 @@ class CalibrationResult:
         value = np.where(fit.identifiable, self.pige.values_file_units(), np.nan)
         unc = self.pige.uncertainties_file_units()
         rows = []
-        truth_gauge = self.truth_pige.values_file_units() if self.truth_pige else np.full(len(specs), np.nan)
+        # the truth in the fit's gauge, by name: a fit with added effects has parameters the truth's lacks
+        truth_by_name = (dict(zip([t.name for t in self.truth_pige.specs], self.truth_pige.values_file_units(),
+                                  strict=True)) if self.truth_pige else {})
+        truth_gauge = np.array([truth_by_name.get(sp.name, np.nan) for sp in specs])
         for i, s in enumerate(specs):
             nominal = np.nan
             if self.truth is not None and s.kind == "pige":

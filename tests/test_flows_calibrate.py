@@ -1,0 +1,32 @@
+"""The calibrate flow end to end on a small simulated campaign (Prefect test harness): a re-run
+re-uses every cached task, and adding an effect re-runs the fit and what follows it but no image
+work of the campaign."""
+
+import shutil
+
+from flows.calibrate import calibrate_campaign
+from tasks.reproduce import opencv_threads
+from tasks.results_lake import read_table
+
+
+def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image_work(
+        calibrated_campaign, prefect_harness, tmp_path):
+    folder = tmp_path / "campaigns" / calibrated_campaign.campaign.name
+    shutil.copytree(calibrated_campaign.campaign, folder, ignore=shutil.ignore_patterns("captures"))
+    results, reports = str(tmp_path / "results"), str(tmp_path / "reports")
+    with opencv_threads(1):
+        first = calibrate_campaign(str(folder), results_root=results, reports_root=reports, run="first")
+        again = calibrate_campaign(str(folder), results_root=results, reports_root=reports, run="again")
+        effect = calibrate_campaign(str(folder), results_root=results, reports_root=reports, run="effect",
+                                    effects=["backlash:axis=X,amount_um=0"])
+    n_chunks = again["cached"]["measure"]["detect"]
+    assert n_chunks > 0  # (the first run may already hit: detection is keyed on image content)
+    assert again["cached"] == {"measure": {"detect": n_chunks, "calibrate": 1, "poses": 1}, "identify": True,
+                               "compensate": True, "capture": True, "cross_validate": True}
+    assert again["verification_means"] == first["verification_means"]
+    # the added effect: images, detection, camera calibration and poses from the cache; the fit anew
+    assert effect["cached"]["measure"] == {"detect": n_chunks, "calibrate": 1, "poses": 1}
+    assert not effect["cached"]["identify"] and not effect["cached"]["cross_validate"]
+    assert effect["effects"] and effect["effects"][0].startswith("backlash:axis=X")
+    ladder = read_table("model_ladder", results, first["campaign_id"]).sort_values("step")
+    assert len(ladder) == 2 and ladder["n_params"].iloc[1] == ladder["n_params"].iloc[0] + 1

@@ -30,8 +30,9 @@ INPUT_HASH = {"images": "input_sha256", "detector_comparison": "input_sha256",
 
 
 def test_registry_has_every_table_of_today():
-    assert set(TABLES) == {"images", "dots", "camera_calibration", "poses", "detector_comparison",
-                           *CALIBRATE_TABLES, *RESIDUAL_TABLES}
+    # others may be added (one entry each): the tables the pipeline writes today must be there
+    assert {"images", "dots", "camera_calibration", "poses", "detector_comparison", *CALIBRATE_TABLES,
+            *RESIDUAL_TABLES} <= set(TABLES)
     for t in TABLES.values():
         assert t.version >= 1 and t.keys[0] == "campaign_id" and t.row and t.writer
         assert all(c.meaning for c in t.columns), t.name

@@ -10,7 +10,9 @@ cameras, choice over its choices). Its amplitudes are the candidate's columns (w
 columns each: 0° and 90°, :mod:`tasks.diagnosis.effect_params`). A period is not guessed: it is
 scanned (:func:`scan_period`) by a generalised periodogram of the residual against the variable it
 is a period of, the score of eq. (2) over a frequency grid from 1/span to the sweep's Nyquist
-frequency (5 × oversampled), then refined by a bounded search around the best grid frequency.
+frequency (5 × oversampled, at most 400 frequencies), then refined by a bounded search around the
+three highest peaks. The number of independent frequencies, span × bandwidth, counts as trials in
+the significance test.
 A candidate whose amplitudes act nowhere in this campaign (a rotary amount on a linear axis) drops
 those columns; one with no acting amplitude is dropped.
 """
@@ -23,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from tasks.diagnosis.effect_fit import acts
 from tasks.diagnosis.effect_params import (
     TIME_UNITS,
     amplitude_names,
@@ -32,14 +35,14 @@ from tasks.diagnosis.effect_params import (
     phase_name,
     unit_pair,
 )
-from tasks.diagnosis.effect_fit import acts
 from tasks.diagnosis.linearisation import Linearisation
 from tasks.diagnosis.score import Scorer
 from tasks.effects import EFFECTS, Effect
 from tasks.machine import AXIS_ORDER, Machine
 
 GRID_OVERSAMPLING = 5
-MAX_GRID = 800  # frequencies per scan
+MAX_GRID = 400  # frequencies per scan (the oversampling gives way beyond it)
+REFINED_PEAKS = 3
 
 
 @dataclass
@@ -187,20 +190,23 @@ def scan_period(lin: Linearisation, scorer: Scorer, cand: Candidate, name: str) 
 
     def delta(fs: np.ndarray) -> np.ndarray:
         pairs = [p for f in fs for p in variant(f).pairs()]
-        G, raw = lin.columns(pairs)
+        G, _ = lin.columns(pairs)
         k = cand.n_columns
         return scorer.score(G.reshape(len(fs), k, -1).transpose(0, 2, 1)).delta_rss
 
     power = delta(freqs)
-    best = int(np.argmax(power))
     df = freqs[1] - freqs[0] if n > 1 else f_lo
-    lo, hi = max(freqs[best] - df, f_lo * 0.5), freqs[best] + df
-    res = minimize_scalar(lambda f: -delta(np.array([f]))[0], bounds=(lo, hi), method="bounded",
-                          options={"xatol": df * 1e-3})
-    f_best = float(res.x) if -res.fun >= power[best] else float(freqs[best])
+    # refine the highest few local maxima (the grid may be coarser than a peak when MAX_GRID binds)
+    peaks = [i for i in range(n) if power[i] >= power[max(i - 1, 0)] and power[i] >= power[min(i + 1, n - 1)]]
+    f_best, p_best = float(freqs[int(np.argmax(power))]), float(power.max())
+    for i in sorted(peaks, key=lambda i: -power[i])[:REFINED_PEAKS]:
+        res = minimize_scalar(lambda f: -delta(np.array([f]))[0], bounds=(max(freqs[i] - df, f_lo * 0.5),
+                              freqs[i] + df), method="bounded", options={"xatol": df * 1e-3})
+        if -res.fun > p_best:
+            f_best, p_best = float(res.x), float(-res.fun)
     out = variant(f_best)
     out.scanned = {name: 1.0 / f_best / unit_scale}
-    out.trials = max(n / GRID_OVERSAMPLING, 1.0)
+    out.trials = max(span * (f_hi - f_lo), 1.0)  # independent frequencies
     out.period_variable = variable
     out.periodogram = (freqs, power)
     return out

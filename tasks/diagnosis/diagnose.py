@@ -49,7 +49,7 @@ from tasks.machine import Machine
 
 ALPHA = 1e-3
 MIN_DELTA_BIC = -10.0
-CONFIRM = 5  # top candidates whose cross-validated refit is computed per round
+CONFIRM = 5  # top candidates whose cross-validated refit is computed per round (and every significant one)
 COLUMNS = ("rank", "family", "axis", "spec", "score", "p_value", "delta_bic", "predicted_rms", "cv_rms",
            "explained", "step", "accepted", "significant", "group", "absorbed", "identifiable", "visible",
            "amplitudes", "sentence")
@@ -74,7 +74,7 @@ class Diagnosis:
 @dataclass
 class _Scored:
     cand: Candidate
-    G: np.ndarray  # (M, k)
+    G: np.ndarray  # (M, k) whitened columns (eq. 1)
     stats: dict
     amplitude: np.ndarray
     visible: float
@@ -85,8 +85,29 @@ class _Scored:
     group: list = field(default_factory=list)
 
     @property
+    def absorbed(self) -> bool:
+        return self.raw_norm > 0.0 and self.visible < ABSORBED
+
+    @property
+    def unseen(self) -> bool:
+        return self.raw_norm == 0.0
+
+    @property
+    def identifiable(self) -> bool:
+        return not (self.absorbed or self.unseen or self.k < self.cand.n_columns)
+
+    @property
     def spec(self) -> str:
-        return self.cand.fitted_effect(self.amplitude).spec()
+        """The fitted spec (amplitudes, phase) when identifiable; the bare family variant otherwise."""
+        return self.cand.fitted_effect(self.amplitude).spec() if self.identifiable else self.cand.spec()
+
+    def statistically_significant(self, alpha: float) -> bool:
+        return bool(self.stats["p_adjusted"] < alpha and self.stats["delta_bic"] < MIN_DELTA_BIC
+                    and not self.absorbed and not self.unseen)
+
+    def significant(self, alpha: float) -> bool:
+        """Significant and confirmed by the cross-validated refit."""
+        return self.statistically_significant(alpha) and self.cv_p < alpha
 
 
 def _score_all(lin: Linearisation, scorer: Scorer, cands: list[Candidate]) -> list[_Scored]:
@@ -103,19 +124,15 @@ def _score_all(lin: Linearisation, scorer: Scorer, cands: list[Candidate]) -> li
     return out
 
 
-def _status(s: _Scored) -> tuple[bool, bool]:
-    """(absorbed, unseen)."""
-    unseen = s.raw_norm == 0.0
-    return (not unseen) and s.visible < ABSORBED, unseen
-
-
 def diagnose(machine: Machine, measurements: Measurements, result: CalibrationResult, candidates=None,
              max_effects: int = 3, alpha: float = ALPHA, folds: int = FOLDS) -> Diagnosis:
     """Rank the effects ``result``'s model lacks (see the module docstring).
 
     measurements: what ``result`` was calibrated on. candidates: family names or Effect classes to
-    consider (default: every registered family). Returns a :class:`Diagnosis`. Runs with one BLAS
-    thread: its many small products are 50× slower when two BLAS threads contend for busy cores."""
+    consider (default: every registered family). max_effects: how many to accept one after the other.
+    alpha: significance level (after the Bonferroni factor). folds: of the cross-validation.
+    Returns a :class:`Diagnosis`. Runs with one BLAS thread: its many small products are 50× slower
+    when two BLAS threads contend for busy cores."""
     with threadpool_limits(limits=1):
         return _diagnose(machine, measurements, result, candidates, max_effects, alpha, folds)
 
@@ -125,118 +142,109 @@ def _diagnose(machine, measurements, result, candidates, max_effects, alpha, fol
     scorer = Scorer(lin.residual, lin.own, gls_transform(*profile_noise(lin)))
     test_folds = fold_rows(lin, folds)
     cv_before = rms(held_out_errors(lin.residual, lin.own, test_folds))
-    accepted: list[_Scored] = []
-    accepted_rows, sentences = [], []
-    notes: list[str] = []
     camera = IDENTIFICATION_CAMERA
+    accepted: list[tuple[int, _Scored]] = []
+    sentences: list[str] = []
     final: list[_Scored] = []
+    notes: list[str] = []
     for step in range(max_effects + 1):
-        have = list(result.model.effects) + [a.cand.effect() for a in accepted]
+        have = list(result.model.effects) + [a.cand.effect() for _, a in accepted]
         cands, notes = enumerate_candidates(machine, lin, scorer, candidates, have)
-        scored = _score_all(lin, scorer, cands)
+        final = _score_all(lin, scorer, cands)
         n_tests = sum(c.trials for c in cands) or 1.0
-        for s in scored:
+        for s in final:
             s.stats["p_adjusted"] = min(1.0, s.stats["p_value"] * n_tests)
+            s.stats["trials"] = n_tests
         # identifiable candidates first: an absorbed one "explains" only by a huge amplitude on the
-        # sliver of its signature the model cannot reproduce
-        scored.sort(key=lambda s: (any(_status(s)), s.stats["delta_bic"]))
-        X_have = np.hstack([lin.own] + [a.G for a in accepted]) if accepted else lin.own
+        # sliver of its signature that the model cannot reproduce
+        final.sort(key=lambda s: (s.absorbed or s.unseen, s.stats["delta_bic"]))
+        X_have = np.hstack([lin.own] + [a.G for _, a in accepted])
         e_now = held_out_errors(lin.residual, X_have, test_folds)
         cv_now = rms(e_now)
-        for s in scored[:CONFIRM]:
-            if s.stats["delta_bic"] < 0 and s.k > 0:
+        for i, s in enumerate(final):
+            if s.k > 0 and (i < CONFIRM or s.statistically_significant(alpha)):
                 e_with = held_out_errors(lin.residual, np.hstack([X_have, s.G]), test_folds)
                 s.cv, s.cv_p = rms(e_with), cv_improvement_p(e_now, e_with)
-        final = scored
-        if step == max_effects or not scored:
+        if step == max_effects or not final or not final[0].significant(alpha):
             break
-        lead = scored[0]
-        absorbed, unseen = _status(lead)
-        significant = (lead.stats["p_adjusted"] < alpha and lead.stats["delta_bic"] < MIN_DELTA_BIC
-                       and lead.cv_p < alpha and not absorbed and not unseen)
-        if not significant:
-            break
-        for other in scored[1:]:
-            if other.stats["p_adjusted"] >= alpha or other.k == 0:
-                continue
-            _, p_lead_given_other = scorer.conditional(lead.G, other.G)
-            if p_lead_given_other > alpha:
-                lead.group.append(other)
-        if lead.group:
-            names = ", ".join(f"`{g.spec}`" for g in [lead, *lead.group])
-            sentences.append(f"{camera} residual {residual_direction(lin, -lead.G @ lead.amplitude)} is explained "
-                             f"equally well by {names}: this campaign cannot tell them apart, none is accepted. "
-                             f"Poses that would: {'; '.join(sorted({identifying_poses(g.cand.effect()) for g in [lead, *lead.group]}))}.")
-            break
+        lead = final[0]
+        lead.group = [o for o in final[1:] if o.significant(alpha) and scorer.conditional(lead.G, o.G)[1] > alpha]
         direction = residual_direction(lin, -lead.G @ lead.amplitude)
+        if lead.group:
+            members = [lead, *lead.group]
+            poses = "; ".join(sorted({identifying_poses(g.cand.effect()) for g in members}))
+            sentences.append(f"{camera} residual {direction} is explained equally well by "
+                             f"{', '.join(f'`{g.spec}`' for g in members)}: this campaign cannot tell them apart, "
+                             f"so none is accepted. Poses that would: {poses}.")
+            break
         sentences.append(explained_sentence(camera, direction, lead.cand, lead.spec, lead.stats["explained"],
                                             lead.stats["p_value"], lead.stats["delta_bic"], cv_now, lead.cv))
-        accepted.append(lead)
-        accepted_rows.append((step, lead))
+        accepted.append((step, lead))
         scorer.accept(lead.G)
+    sentences += _closing_sentences(final, accepted, camera, alpha)
+    return Diagnosis(_table(accepted, final, alpha), sentences + _identifiability_sentences(final),
+                     accepted[0][1].spec if accepted else None, [a.spec for _, a in accepted], cv_before, notes)
+
+
+def _closing_sentences(final: list[_Scored], accepted, camera: str, alpha: float) -> list[str]:
+    top = next((s for s in final if not (s.absorbed or s.unseen)), None)
+    if top is not None and top.group:
+        return []
+    if top is None:
+        return [] if accepted else ["Nothing significant: no candidate acts on this campaign's poses."]
+    why = (f"`{top.spec}` ({follows(top.cand)}) would explain {100 * top.stats['explained']:.1f} % of the {camera} "
+           f"residual ({p_text(top.stats['p_adjusted'])} after {top.stats['trials']:.0f} trials, "
+           f"ΔBIC {top.stats['delta_bic']:+.0f}"
+           + (f", cross-validated p = {top.cv_p:.2g}" if np.isfinite(top.cv) else "") + ")")
     if not accepted:
-        top = final[0] if final else None
-        if top is None:
-            sentences.append("Nothing significant: no candidate acts on this campaign's poses.")
-        else:
-            sig = "" if not sentences else " "
-            sentences.insert(0, (f"Nothing significant{sig}: the best candidate, `{top.spec}` ({follows(top.cand)}), "
-                                 f"would explain {100 * top.stats['explained']:.1f} % of the {camera} residual "
-                                 f"({p_text(top.stats['p_adjusted'])} after {sum(c.cand.trials for c in final):.0f} "
-                                 f"trials, ΔBIC {top.stats['delta_bic']:+.0f})."))
-    elif final:
-        top = final[0]
-        if not (top.stats["p_adjusted"] < alpha and top.stats["delta_bic"] < MIN_DELTA_BIC):
-            sentences.append(f"After {', '.join(f'`{a.spec}`' for a in accepted)}, nothing else is significant "
-                             f"(best remaining: `{top.spec}`, {p_text(top.stats['p_adjusted'])} after "
-                             f"{sum(c.cand.trials for c in final):.0f} trials, ΔBIC {top.stats['delta_bic']:+.0f}).")
-    for s in final:
-        absorbed, unseen = _status(s)
-        if absorbed and s.stats["delta_bic"] > MIN_DELTA_BIC and s.cand.family:
-            pass
-    table = _table(accepted_rows, final, alpha)
-    warned = _identifiability_sentences(final)
-    return Diagnosis(table, sentences + warned, accepted[0].spec if accepted else None,
-                     [a.spec for a in accepted], cv_before, notes)
+        return [f"Nothing significant: the best candidate, {why}."]
+    done = ", ".join(f"`{a.spec}`" for _, a in accepted)
+    return [f"After {done}, nothing else is significant: the best remaining candidate, {why}."]
 
 
 def _identifiability_sentences(final: list[_Scored]) -> list[str]:
-    """One sentence per family whose variants this campaign cannot see or cannot separate from the model."""
+    """One sentence per family whose variants this campaign cannot see or cannot tell from the model."""
     out, seen = [], set()
     for s in final:
-        absorbed, unseen = _status(s)
-        if not (absorbed or unseen) or s.cand.family in seen:
+        if not (s.absorbed or s.unseen) or s.cand.family in seen:
             continue
         seen.add(s.cand.family)
-        why = ("no camera sees it" if unseen else
-               f"the PDGE profiles and constant parameters already reproduce {100 * (1 - s.visible):.0f} % of its signature")
+        why = ("no camera sees it" if s.unseen else "the PDGE profiles and constant parameters already reproduce "
+               f"{100 * (1 - s.visible):.0f} % of its signature")
         out.append(f"`{s.cand.spec()}` is not identifiable from this campaign's poses ({why}); "
                    f"poses that would identify it: {identifying_poses(s.cand.effect())}.")
     return out
 
 
+def _amplitudes_text(s: _Scored) -> str:
+    names = [f"{a} ({ph})" for a in s.cand.amplitudes for ph in ("0°", "90°")] if s.cand.phase else list(
+        s.cand.amplitudes)
+    return ", ".join(f"{n}={v:.4g}" for n, v in zip(names, s.amplitude, strict=False))
+
+
 def _row(s: _Scored, rank: int, step: int, accepted: bool, alpha: float, group: str) -> dict:
-    absorbed, unseen = _status(s)
-    sig = bool(s.stats["p_adjusted"] < alpha and s.stats["delta_bic"] < MIN_DELTA_BIC)
-    amps = ", ".join(f"{a}={v:.4g}" for a, v in zip(
-        [f"{a}@{ph}" for a in s.cand.amplitudes for ph in (("0", "90") if s.cand.phase else ("",))],
-        s.amplitude, strict=False))
+    if accepted:
+        sentence = "accepted"
+    elif group:
+        sentence = "cannot be told apart from the others of its group by this campaign"
+    elif not s.identifiable:
+        sentence = f"not identifiable; poses that would identify it: {identifying_poses(s.cand.effect())}"
+    else:
+        sentence = ""
     return {"rank": rank, "family": s.cand.family, "axis": s.cand.axis, "spec": s.spec, "score": s.stats["score"],
             "p_value": s.stats["p_value"], "delta_bic": s.stats["delta_bic"], "predicted_rms": s.stats["predicted_rms"],
-            "cv_rms": s.cv, "explained": s.stats["explained"], "step": step, "accepted": accepted, "significant": sig,
-            "group": group, "absorbed": absorbed, "identifiable": not (absorbed or unseen or s.k < s.cand.n_columns),
-            "visible": s.visible, "amplitudes": amps.replace("@,", ",").replace("@=", "=").replace("@", " at ")
-            .replace(" at 0=", " (0°)=").replace(" at 90=", " (90°)="),
-            "sentence": "" if not (absorbed or unseen) else f"not identifiable: {identifying_poses(s.cand.effect())}"}
+            "cv_rms": s.cv, "explained": s.stats["explained"], "step": step, "accepted": accepted,
+            "significant": s.significant(alpha), "group": group, "absorbed": s.absorbed,
+            "identifiable": s.identifiable, "visible": s.visible, "amplitudes": _amplitudes_text(s),
+            "sentence": sentence}
 
 
-def _table(accepted_rows, final: list[_Scored], alpha: float) -> pd.DataFrame:
-    rows = []
-    for step, s in accepted_rows:
-        grp = ""
-        rows.append(_row(s, len(rows) + 1, step, True, alpha, grp))
-    step_final = len(accepted_rows)
-    lead_groups = {id(g): f"with {final[0].spec}" for g in (final[0].group if final else [])}
+def _table(accepted, final: list[_Scored], alpha: float) -> pd.DataFrame:
+    rows = [_row(s, i + 1, step, True, alpha, "") for i, (step, s) in enumerate(accepted)]
+    lead = final[0] if final else None
+    grouped = {id(g) for g in lead.group} | {id(lead)} if lead is not None and lead.group else set()
+    step_final = len(accepted)
     for s in final:
-        rows.append(_row(s, len(rows) + 1, step_final, False, alpha, lead_groups.get(id(s), "")))
+        label = lead.spec if id(s) in grouped else ""
+        rows.append(_row(s, len(rows) + 1, step_final, False, alpha, label))
     return pd.DataFrame(rows, columns=list(COLUMNS))

@@ -104,6 +104,7 @@ class AxisResponse:
     """The linear extraction map of one axis' sweep.
 
     sweep: the sweep's images (stage ``pdge``, group = axis). q: (K,) sweep positions (mm or rad).
+    error_motions: (N_j, 6) what the extraction read from the sweep (mm, rad).
     average: (K, N_j) mean over repeats. hat: (6, K, K) per component. gauge: (6K, 6K).
     operator: (6K, 6N_j) the whole map G H A on row-major flattened (K, 6) and (N_j, 6) arrays.
     smoothing_cov: (6K, 6K) the smoothing bias allowance of the referred profile (see
@@ -117,6 +118,7 @@ class AxisResponse:
     gauge: np.ndarray
     operator: np.ndarray | None = None
     smoothing_cov: np.ndarray | None = None
+    error_motions: np.ndarray | None = None
 
     def __post_init__(self):
         if self.operator is None:
@@ -131,6 +133,12 @@ class AxisResponse:
         """(B, N_j, 6) changes of the sweep's error motions -> (B, K, 6) changes of the referred profile."""
         b = dE.shape[0]
         return (dE.reshape(b, -1) @ self.operator.T).reshape(b, -1, 6)
+
+    def profile(self) -> TabulatedProfile:
+        """The referred profile the extraction makes of ``error_motions`` (N_j, 6): the same as
+        :func:`tasks.identification.pdge_extraction.extract_axis`'s, without its table."""
+        k = self.q.size
+        return TabulatedProfile(self.q, (self.operator @ self.error_motions.ravel()).reshape(k, 6))
 
     def interpolation(self, positions: np.ndarray) -> np.ndarray:
         """(N, K) weights of the tabulated profile's natural cubic spline at ``positions`` (mm or rad)."""
@@ -188,7 +196,7 @@ def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis
             hat[c] = hat_matrix(q, w, gcv_roughness(q, mean[:, c], w))
     gauge = gauge_operator(machine, axis, q)
     bias = smoothing_bias_covariance(hat, pooled_variance(E, inverse, k), count, gauge)
-    return AxisResponse(axis, sweep, q, average, hat, gauge, smoothing_cov=bias)
+    return AxisResponse(axis, sweep, q, average, hat, gauge, smoothing_cov=bias, error_motions=E)
 
 
 def axis_responses(machine: Machine, model: ErrorModel, measurements: Measurements) -> dict[str, AxisResponse]:

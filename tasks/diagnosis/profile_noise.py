@@ -74,6 +74,10 @@ def gls_transform(U: np.ndarray, s: np.ndarray):
             return x
         if x.ndim == 1:
             return x - U @ (d * (U.T @ x))
-        return x - U @ (d[:, None] * (U.T @ x))
+        if x.ndim == 2:
+            return x - U @ (d[:, None] * (U.T @ x))
+        b, m, k = x.shape  # one product for the whole batch: (M, B·k)
+        flat = x.transpose(1, 0, 2).reshape(m, b * k)
+        return (flat - U @ (d[:, None] * (U.T @ flat))).reshape(m, b, k).transpose(1, 0, 2)
 
     return transform

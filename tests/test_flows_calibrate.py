@@ -22,11 +22,12 @@ def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image
     n_chunks = again["cached"]["measure"]["detect"]
     assert n_chunks > 0  # (the first run may already hit: detection is keyed on image content)
     assert again["cached"] == {"measure": {"detect": n_chunks, "calibrate": 1, "poses": 1}, "identify": True,
-                               "compensate": True, "capture": True, "cross_validate": True}
+                               "compensate": True, "capture": True, "cross_validate": True, "diagnose": True}
     assert again["verification_means"] == first["verification_means"]
     # the added effect: images, detection, camera calibration and poses from the cache; the fit anew
     assert effect["cached"]["measure"] == {"detect": n_chunks, "calibrate": 1, "poses": 1}
     assert not effect["cached"]["identify"] and not effect["cached"]["cross_validate"]
+    assert not effect["cached"]["diagnose"]
     assert effect["effects"] and effect["effects"][0].startswith("backlash:axis=X")
     ladder = read_table("model_ladder", results, first["campaign_id"]).sort_values("step")
     assert len(ladder) == 2 and ladder["n_params"].iloc[1] == ladder["n_params"].iloc[0] + 1

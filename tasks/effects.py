@@ -356,15 +356,38 @@ def catalogue_text() -> str:
     return "\n".join(lines)
 
 
-def load_effect_modules(modules) -> list[str]:
-    """Import user modules (dotted paths, e.g. ``mylab.effects``) so that the effect families they
-    define register themselves with :func:`register`; returns the families now known. A module that
-    cannot be imported raises ``ValueError`` naming it."""
+ENTRY_POINT_GROUP = "fivecal.effects"
+
+
+def load_effect_modules(modules, entry_point_group: str | None = ENTRY_POINT_GROUP) -> list[str]:
+    """Import user modules so that the effect families they define register themselves with
+    :func:`register`; returns the families now known. A module is a dotted path on ``sys.path``
+    (e.g. ``mylab.effects``) or a ``.py`` file; installed packages may also advertise modules under the
+    entry-point group ``entry_point_group`` (None: skip). One that cannot be imported raises
+    ``ValueError`` naming it. See docs/user-effects.md."""
     import importlib
+    import importlib.util
+    import sys
+    from importlib.metadata import entry_points
+    from pathlib import Path
 
     for name in modules:
+        name = str(name)
         try:
-            importlib.import_module(name)
+            if name.endswith(".py"):
+                path = Path(name)
+                module_name = f"fivecal_user_effects_{path.stem}"
+                spec = importlib.util.spec_from_file_location(module_name, path)
+                if spec is None or not path.is_file():
+                    raise ImportError(f"no such file {path}")
+                module = importlib.util.module_from_spec(spec)
+                sys.modules[module_name] = module
+                spec.loader.exec_module(module)
+            else:
+                importlib.import_module(name)
         except ImportError as e:
             raise ValueError(f"effect module {name!r} could not be imported: {e}") from None
+    if entry_point_group:
+        for ep in entry_points(group=entry_point_group):
+            ep.load()
     return sorted(EFFECTS)

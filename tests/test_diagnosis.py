@@ -181,7 +181,8 @@ def user_effect_module(tmp_path):
     """A user effect module written to a file and loaded as ``--effect-module`` would; unregistered after."""
     path = tmp_path / "coolant_effects.py"
     path.write_text(textwrap.dedent(USER_EFFECT))
-    added = load_effect_modules([str(path)], entry_point_group=None)
+    before = set(EFFECTS)
+    added = sorted(set(load_effect_modules([str(path)], entry_point_group=None)) - before)
     yield added
     for family in added:
         EFFECTS.pop(family, None)

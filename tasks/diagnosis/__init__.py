@@ -5,7 +5,8 @@
 - :func:`calibrate_with_effects` (what ``calibrate(..., base=ErrorModel(effects=[...]))`` and
   ``fivecal calibrate --add-effect SPEC`` run): the effects' amplitudes fitted with the constants;
 - :func:`cross_validated_rms`: a calibration's k-fold cross-validated whitened residual;
-- :func:`load_effect_modules`: import user effect families (``--effect-module mypkg.myeffects``).
+- :func:`load_effect_modules` (from :mod:`tasks.effects`): import user effect families
+  (``--effect-module mypkg.myeffects``).
 
 See docs/diagnosis.md and docs/user-effects.md.
 """
@@ -13,6 +14,6 @@ See docs/diagnosis.md and docs/user-effects.md.
 from tasks.diagnosis.crossval import cross_validated_rms
 from tasks.diagnosis.diagnose import Diagnosis, diagnose
 from tasks.diagnosis.effect_fit import calibrate_with_effects
-from tasks.diagnosis.plugins import load_effect_modules
+from tasks.effects import load_effect_modules
 
 __all__ = ["Diagnosis", "calibrate_with_effects", "cross_validated_rms", "diagnose", "load_effect_modules"]

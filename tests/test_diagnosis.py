@@ -146,6 +146,40 @@ def test_time_and_temperature_that_move_together_are_reported_as_one_group(machi
     assert "cannot tell them apart" in d.sentences[0] and "other temperatures" in d.sentences[0]
 
 
+def test_two_hidden_effects_are_accepted_one_after_the_other_each_rescored_against_what_is_left(
+        machine, frame, no_effect):
+    """Backlash of X and a thermal drift of Y with time, hidden together: the diagnosis accepts the one
+    that explains more, re-scores every other candidate against the residual without it, accepts the
+    second, and then finds nothing else."""
+    meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=10"),
+                                     parse_effect("thermal_drift:axis=Y,driver=time,um_per_hour=30")])
+    d = diagnose(machine, meas, calibrate(machine, meas), max_effects=3)
+    accepted = d.table[d.table.accepted]
+    assert list(zip(accepted.family, accepted.axis, accepted.step, strict=True)) == [
+        ("backlash", "X", 0), ("thermal_drift", "Y", 1)], d.table.head(4).to_string()
+    assert parse_effect(d.accepted[1])["driver"] == "time"
+    rest = d.table[~d.table.accepted]
+    assert (rest.step == 2).all() and not rest.significant.any()
+    assert d.sentences[2].startswith("After `backlash:axis=X") and "nothing else is significant" in d.sentences[2]
+
+
+def test_an_added_effect_the_poses_cannot_identify_is_warned_about_with_the_poses_that_would(machine, no_effect):
+    """calibrate --add-effect with a tool-tip offset (no camera sees the tip) and a scale error of X (the X
+    profile, refitted from the X sweep, carries any linear trend along X): both are reported
+    unidentifiable, with what would identify them; the fit itself is unharmed."""
+    meas, plain, _ = no_effect
+    base = ErrorModel(effects=[parse_effect("tool_offset:dx_um=0"), parse_effect("scale:axis=X,ppm=0")])
+    result = calibrate(machine, meas, base=base)
+    table = result.pige_table().set_index("name")
+    effect_rows = table[table.kind == "effect"]
+    assert set(effect_rows.index) >= {"tool_offset:dx_um", "scale:ppm"}
+    assert not effect_rows.identifiable.any() and effect_rows.value.isna().all()
+    notes = " ".join(result.notes)
+    assert "tool_offset" in notes and "measure the tip" in notes
+    assert "scale:axis=X" in notes and "reference length along X" in notes
+    assert result.pige.fit.sigma2 == pytest.approx(plain.pige.fit.sigma2, rel=0.02)
+
+
 USER_EFFECT = '''
     """A user's effect: a periodic error in time along a linear axis (e.g. a coolant pump's cycle)."""
     import numpy as np

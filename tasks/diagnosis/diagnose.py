@@ -194,8 +194,7 @@ def _closing_sentences(final: list[_Scored], accepted, camera: str, alpha: float
         return [] if accepted else ["Nothing significant: no candidate acts on this campaign's poses."]
     why = (f"`{top.spec}` ({follows(top.cand)}) would explain {100 * top.stats['explained']:.1f} % of the {camera} "
            f"residual ({p_text(top.stats['p_adjusted'])} after {top.stats['trials']:.0f} trials, "
-           f"ΔBIC {top.stats['delta_bic']:+.0f}"
-           + (f", cross-validated p = {top.cv_p:.2g}" if np.isfinite(top.cv) else "") + ")")
+           f"ΔBIC {top.stats['delta_bic']:+.0f})")
     if not accepted:
         return [f"Nothing significant: the best candidate, {why}."]
     done = ", ".join(f"`{a.spec}`" for _, a in accepted)

@@ -10,14 +10,17 @@ work spread over both workers.
 
 from __future__ import annotations
 
+import os
 import pickle
+import subprocess
+import sys
 
 import cloudpickle
 import pandas as pd
 import pytest
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from flows.runners import LOCAL_THREADS, image_task_runner
+from flows.runners import LOCAL_THREADS, image_task_runner, local_dask_cluster
 from tasks.campaign_plan import CampaignPlan
 
 # enough calibration views for intrinsics (so that poses are estimated), 41 images
@@ -40,7 +43,7 @@ def test_address_connects_to_an_existing_cluster_and_workers_start_a_local_one()
     local = image_task_runner(dask_workers=3)
     assert isinstance(local, DaskTaskRunner) and local.address is None
     assert local.cluster_kwargs["n_workers"] == 3 and local.cluster_kwargs["processes"]
-    assert local.cluster_kwargs["threads_per_worker"] == 1
+    assert local.cluster_kwargs["threads_per_worker"] == 1 and local.cluster_class is local_dask_cluster
 
 
 @pytest.mark.parametrize(("address", "workers", "message"), [
@@ -76,7 +79,7 @@ def read_tables(root, campaign_id: str) -> dict[str, pd.DataFrame]:
 
 @pytest.mark.flow
 def test_measure_on_two_dask_workers_gives_identical_tables(prefect_harness, tmp_path):
-    from distributed import Client, LocalCluster, get_task_stream
+    from distributed import Client, get_task_stream
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
 
     from flows.measure import measure_campaign
@@ -89,7 +92,7 @@ def test_measure_on_two_dask_workers_gives_identical_tables(prefect_harness, tmp
     with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: tmp_path / "storage-threads"}):
         threads = measure_campaign(str(folder), str(tmp_path / "threads"), chunk_size=chunk_size)
     storage = tmp_path / "storage-dask"
-    with (LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+    with (local_dask_cluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
           Client(cluster) as client, get_task_stream(client) as stream,
           temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: storage})):
         runner = image_task_runner(dask_address=cluster.scheduler_address)
@@ -111,8 +114,10 @@ def test_measure_on_two_dask_workers_gives_identical_tables(prefect_harness, tmp
 
 
 @pytest.mark.flow
-def test_ingest_on_a_local_cluster_it_starts_itself(prefect_harness, campaign_copy, tmp_path):
-    """``--dask-workers 2``: the flow starts a local cluster for its run and stops it afterwards."""
+def test_fivecal_ingest_on_a_local_cluster_uses_one_prefect_server(prefect_harness, campaign_copy, tmp_path):
+    """``fivecal ingest --dask-workers 2`` with Prefect's temporary server, as a user runs it: the
+    command starts the cluster, its workers record their task runs on the command's temporary
+    server (none starts one of its own), and the images table equals the thread runner's."""
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
 
     from flows.ingest import run_ingest
@@ -121,9 +126,15 @@ def test_ingest_on_a_local_cluster_it_starts_itself(prefect_harness, campaign_co
     campaign = campaign_copy("dasklocal")
     with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: tmp_path / "storage-threads"}):
         threads = run_ingest(campaign, tmp_path / "threads")
-    with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: tmp_path / "storage-dask"}):
-        dask = run_ingest(campaign, tmp_path / "dask", dask_workers=2)
-    assert threads["chunks_cached"] == dask["chunks_cached"] == 0
-    assert dask["by_status"] == {"ok": len(pd.read_csv(campaign / "manifest.csv"))}
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(PREFECT_HOME=str(tmp_path / "prefect-home"), PREFECT_LOCAL_STORAGE_PATH=str(tmp_path / "storage-dask"),
+               PREFECT_SERVER_ANALYTICS_ENABLED="false")
+    run = subprocess.run([sys.executable, "-m", "fivecal.cli", "ingest", str(campaign), "--results",
+                          str(tmp_path / "dask"), "--dask-workers", "2"], env=env, capture_output=True, text=True,
+                         timeout=300)
+    log = run.stdout + run.stderr
+    assert run.returncode == 0, log[-3000:]
+    assert log.count("Starting temporary server") == 1, log[-3000:]
+    assert f"{threads['n_ok']} ok, 0 faults" in run.stdout and threads["chunks_cached"] == 0
     pd.testing.assert_frame_equal(read_table("images", tmp_path / "dask"), read_table("images", tmp_path / "threads"),
                                   check_exact=True)

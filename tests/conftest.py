@@ -1,6 +1,6 @@
 """Shared fixtures.
 
-- ``tiny_campaign``: a 17-image simulated campaign (small image size, 768×512 px), written once
+- ``tiny_campaign``: an 18-image simulated campaign (small image size, 768×512 px), written once
   per session by the science functions directly (no Prefect run), so tests never depend on /tmp.
 - ``campaign_copy``: a factory copying it into the test's tmp_path under a new campaign_id, for
   tests that damage it.
@@ -31,9 +31,10 @@ TINY_SEED = 0
 
 
 def write_tiny_campaign(folder: Path, campaign_id: str = TINY_CAMPAIGN_ID, seed: int = TINY_SEED) -> Path:
-    """Simulate a tiny campaign into ``folder`` (17 images: 2 calibration views per camera, 2
-    positions of each axis sweep, 2 PIGE and 1 validation pose), as ``fivecal simulate`` would
-    write it at ``--size small``, truth included. Science functions only; about half a second."""
+    """Simulate a tiny campaign into ``folder`` (18 images: 2 calibration views per camera, 2
+    positions of each axis sweep (3 of C: both stroke ends and home), 2 PIGE and 1 validation pose),
+    as ``fivecal simulate`` would write it at ``--size small``, truth included. Science functions
+    only; about half a second."""
     from tasks.campaign_plan import CampaignPlan
     from tasks.simulate import write_campaign
 

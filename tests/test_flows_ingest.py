@@ -19,7 +19,7 @@ from tasks.results_lake import read_provenance, read_table
 
 pytestmark = pytest.mark.flow
 
-N_IMAGES = 17
+N_IMAGES = 18  # the tiny campaign (tests/conftest.py)
 
 
 def chunk_task_states(flow_run_id: UUID, expected: int, timeout_s: float = 20.0) -> list[str]:

@@ -16,7 +16,8 @@ def test_simulate_flow_writes_a_complete_campaign_atomically(prefect_harness, tm
     assert path == str(out.resolve())
     manifest = pd.read_csv(out / "manifest.csv")
     p = CampaignPlan.small()
-    expected = 2 * p.calibration_trials * p.images_per_trial + 5 * p.sweep_positions * p.sweep_repeats \
+    c_positions = p.sweep_positions + 1 - p.sweep_positions % 2  # C: both stroke ends and home
+    expected = 2 * p.calibration_trials * p.images_per_trial + (4 * p.sweep_positions + c_positions) * p.sweep_repeats \
         + p.pige_poses + p.validation_poses
     assert len(manifest) == expected
     assert all((out / rel).is_file() for rel in manifest.path)

@@ -1,6 +1,6 @@
 """Tests of ingest (tasks/ingest.py) and the results lake (tasks/results_lake.py), without Prefect.
 
-Each bad-input test damages a copy of the 17-image tiny campaign (tests/conftest.py) in one way
+Each bad-input test damages a copy of the 18-image tiny campaign (tests/conftest.py) in one way
 and checks that exactly the damaged row gets the expected status, a message naming its manifest
 row and file, and that every other row stays ok. Campaign-level faults must raise CampaignError
 naming the file and write nothing.
@@ -35,7 +35,7 @@ from tasks.ingest import (
 )
 from tasks.results_lake import read_provenance, read_table, write_partition
 
-N_IMAGES = 17
+N_IMAGES = 18  # C sweeps both stroke ends and home: 3 positions where the others have 2
 
 
 def read_manifest(folder: Path) -> pd.DataFrame:
@@ -265,7 +265,7 @@ def test_summary_counts_faults(campaign_copy):
     s = summarise(images)
     assert s["by_status"] == {"ok": N_IMAGES - 3, "missing_file": 2, "corrupt_image": 1}
     assert s["n_faults"] == 3
-    assert format_summary(s) == "campaign tiny: 17 images, 14 ok, 3 faults (missing_file 2, corrupt_image 1)"
+    assert format_summary(s) == "campaign tiny: 18 images, 15 ok, 3 faults (missing_file 2, corrupt_image 1)"
 
 
 # --------------------------------------------------------------------------------------------

@@ -26,3 +26,5 @@ bench: $(STAMP)
 	$(VENV)/bin/python bench/bench_render.py
 	$(VENV)/bin/python bench/bench_identification.py
 	$(VENV)/bin/python bench/bench_formulations.py
+	$(VENV)/bin/python bench/bench_dask_ingest.py
+	$(VENV)/bin/python bench/bench_memory.py

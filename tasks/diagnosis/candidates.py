@@ -30,6 +30,7 @@ from tasks.diagnosis.effect_params import (
     TIME_UNITS,
     amplitude_names,
     combine_quadrature,
+    effect_axis,
     is_period,
     is_phase,
     phase_name,
@@ -67,13 +68,7 @@ class Candidate:
 
     @property
     def axis(self) -> str:
-        for p in self.cls.params:
-            if p.kind == "axis":
-                return str(self.values[p.name])
-        for p in self.cls.params:
-            if p.kind == "camera":
-                return str(self.values[p.name])
-        return ""
+        return effect_axis(self.effect())
 
     def effect(self, amplitudes: dict | None = None, **overrides) -> Effect:
         vals = {**self.values, **{a: 0.0 for a in amplitude_names(self.cls)}, **(amplitudes or {}), **overrides}

@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 
 from tasks.diagnosis.imaging import imaging_bias, imaging_corrected
 from tasks.diagnosis.pdge_response import AxisResponse, axis_responses
@@ -108,14 +109,12 @@ class Linearisation:
     own_names: list[str]
     sensitivity: Sensitivity | None = None
     sweeps: dict[str, SweepLink] | None = None
+    images: Measurements | None = None  # every image of the fit or a sweep: effects are evaluated once on these
+    rows: dict | None = None  # {"ident" | axis: (n,) row indices into images}
 
     @property
     def n_images(self) -> int:
         return len(self.ident)
-
-    def five_axis_images(self) -> np.ndarray:
-        """(N,) bool: identification images of the five-axis (``pige``) stage."""
-        return (self.ident.table.stage == "pige").to_numpy()
 
     def columns(self, pairs: list[tuple[Effect, Effect]]) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residual columns (B, M) per unit amplitude of each (one, zero) pair, eq. (1), and
@@ -131,12 +130,13 @@ class Linearisation:
 
     def _columns(self, pairs):
         b, n = len(pairs), self.n_images
-        u = channel_values(self.machine, pairs, self.ident)
+        u_all = channel_values(self.machine, pairs, self.images)
+        u = {ch: v[:, self.rows["ident"]] for ch, v in u_all.items()}
         raw = self.sensitivity.apply(u)
         raw = np.zeros((b, n, 6)) if raw is None else raw
         moved = dict(u)
         for axis, link in self.sweeps.items():
-            u_sw = channel_values(self.machine, pairs, link.response.sweep)
+            u_sw = {ch: v[:, self.rows[axis]] for ch, v in u_all.items()}
             dE = link.sensitivity.apply(u_sw)
             if dE is None:
                 continue
@@ -182,4 +182,8 @@ def linearise(machine: Machine, measurements: Measurements, result: CalibrationR
     for axis, resp in axis_responses(machine, ext, corrected).items():
         sens = error_motion_sensitivity(machine, ext, resp.sweep, axis)
         lin.sweeps[axis] = SweepLink(resp, sens, resp.interpolation(q[:, AXIS_ORDER.index(axis)]))
+    lin.images = measurements.stage(*IDENTIFICATION_STAGES, "pdge")
+    where = pd.Series(np.arange(len(lin.images)), index=lin.images.table.image_id.to_numpy())
+    lin.rows = {"ident": where[ident.table.image_id].to_numpy(),
+                **{axis: where[link.response.sweep.table.image_id].to_numpy() for axis, link in lin.sweeps.items()}}
     return lin

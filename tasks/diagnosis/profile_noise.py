@@ -34,7 +34,7 @@ from tasks.diagnosis.linearisation import Linearisation
 from tasks.diagnosis.sensitivity import IMAGING
 from tasks.identification.pige_identification import COV_FLOOR
 
-MIN_VARIANCE = 1e-3  # directions of Σ − I below this (in units of the pose noise) are dropped
+MIN_VARIANCE = 0.05  # directions of Σ − I below this (in units of the pose noise) are dropped: ≤ 2.5 % of a weight
 
 
 def profile_noise(lin: Linearisation) -> tuple[np.ndarray, np.ndarray]:

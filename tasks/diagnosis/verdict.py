@@ -19,7 +19,6 @@ import numpy as np
 from tasks.diagnosis.candidates import Candidate
 from tasks.diagnosis.linearisation import Linearisation
 from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER
 
 ORDINALS = {1: "1st", 2: "2nd", 3: "3rd"}
 
@@ -84,7 +83,3 @@ def explained_sentence(camera: str, direction: str, cand: Candidate, spec: str, 
     cv = "" if not np.isfinite(cv_after) else f"; cross-validated RMS {cv_before:.2f} → {cv_after:.2f}"
     return (f"{camera} residual {direction} follows {follows(cand)}: `{spec}` explains {100 * explained:.0f} % "
             f"of it ({p_text(p)}, ΔBIC {delta_bic:+.0f}{cv})")
-
-
-def axis_letter(name: str) -> bool:
-    return name in AXIS_ORDER

@@ -364,10 +364,12 @@ _TABLES = (
         _c("delta_bic", "float64", meaning="BIC with the candidate minus BIC without (negative: better)"),
         _c("predicted_rms", "float64", meaning="whitened residual RMS predicted after adding it (1 = noise level)"),
         _c("cv_rms", "float64", meaning="cross-validated whitened RMS with it (NaN: not cross-validated)"),
-        _c("explained", "float64", meaning="fraction of the residual's structure it explains (0..1)"),
+        _c("explained", "float64", meaning="fraction of the residual sum of squares it explains, in the metric that "
+           "carries the PDGE profiles' uncertainty (0..1)"),
         _i("step", "acceptance round the row was scored in"),
         _c("accepted", "bool", meaning="accepted (significant, ΔBIC < −10, confirmed by cross-validation)"),
-        _c("significant", "bool", meaning="p below alpha after the Bonferroni factor"),
+        _c("significant", "bool", meaning="p below alpha after the Bonferroni factor, ΔBIC < −10, identifiable and "
+           "confirmed by the cross-validated refit"),
         _s("group", "name of the group of candidates this campaign cannot tell apart (empty: none)"),
         _c("absorbed", "bool", meaning="the PDGE splines and constant parameters already reproduce it"),
         _c("identifiable", "bool", meaning="the campaign's poses identify it"),

@@ -81,7 +81,7 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
         iterations = it
         s, Vt = right_singular(J * steps)  # natural units
         keep = sigma / np.maximum(s, 1e-300) < max_uncertainty
-        V = Vt[keep].T / steps[:, None]  # identifiable subspace, back in internal units
+        V = Vt[keep].T * steps[:, None]  # identifiable subspace, back in internal units (x = steps · x_natural)
         norms = np.linalg.norm(J @ V, axis=0)
         norms[norms == 0] = 1.0
         V = V / norms

@@ -224,20 +224,10 @@ def detect(
         raise typer.Exit(1)
 
 
-@app.command()
-def calibrate(
-    campaign: Annotated[Path, typer.Argument(help="campaign folder")],
-    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
-    = None,
-    detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
-    reports: Annotated[Path, typer.Option(help="reports root; the report goes to <reports>/<campaign_id>/<run>/")]
-    = Path("reports"),
-    add_effect: Annotated[list[str] | None, typer.Option(help="add an effect to the model and fit it: "
-                                                               "family:key=value,... (repeatable)")] = None,
-    effect_module: Annotated[list[str] | None, typer.Option(help="import a module that registers user-written "
-                                                                  "effect families (repeatable)")] = None,
-) -> None:
-    """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
+def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports: Path,
+                   add_effect: list[str] | None, effect_module: list[str] | None) -> dict:
+    """Check the effect options (a bad spec or module is a usage error), then run the calibrate flow on a
+    campaign that passes the campaign-level checks; returns the flow's summary."""
     from tasks.effects import load_effect_modules, parse_effect
 
     try:
@@ -253,7 +243,24 @@ def calibrate(
         return calibrate_campaign(str(campaign), None if results is None else str(results), detector, str(reports),
                                   effects=list(add_effect or []), effect_modules=list(effect_module or []))
 
-    summary = _on_valid_campaign(campaign, run)
+    return _on_valid_campaign(campaign, run)
+
+
+@app.command()
+def calibrate(
+    campaign: Annotated[Path, typer.Argument(help="campaign folder")],
+    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
+    = None,
+    detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
+    reports: Annotated[Path, typer.Option(help="reports root; the report goes to <reports>/<campaign_id>/<run>/")]
+    = Path("reports"),
+    add_effect: Annotated[list[str] | None, typer.Option(help="add an effect to the model and fit it: "
+                                                               "family:key=value,... (repeatable)")] = None,
+    effect_module: Annotated[list[str] | None, typer.Option(help="import a module that registers user-written "
+                                                                  "effect families (repeatable)")] = None,
+) -> None:
+    """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
+    summary = _run_calibrate(campaign, results, detector, reports, add_effect, effect_module)
     typer.echo(f"campaign {summary['campaign_id']}: fit σ² = {summary['sigma2']:.3g} (1 = as the pose covariances "
                f"predict); cached: {summary['cached']}")
     typer.echo("mean tip errors of the validation poses:")
@@ -276,22 +283,7 @@ def diagnose(
 ) -> None:
     """Which physical effect the model lacks: calibrate (cached), then rank every catalogue effect
     against the residuals and say the verdict in words; writes the `diagnosis` table."""
-    from tasks.effects import load_effect_modules, parse_effect
-
-    try:
-        load_effect_modules(effect_module or [])
-        for spec in add_effect or []:
-            parse_effect(spec)
-    except ValueError as e:
-        raise typer.BadParameter(str(e), param_hint="--add-effect / --effect-module") from None
-
-    def run():
-        from flows.calibrate import calibrate_campaign
-
-        return calibrate_campaign(str(campaign), None if results is None else str(results), "rrht", str(reports),
-                                  effects=list(add_effect or []), effect_modules=list(effect_module or []))
-
-    summary = _on_valid_campaign(campaign, run)
+    summary = _run_calibrate(campaign, results, "rrht", reports, add_effect, effect_module)
     for sentence in summary["diagnosis"]:
         typer.echo(sentence)
     if summary["diagnosis_best"]:

@@ -32,6 +32,11 @@ def _key(prefix: str, *parts) -> str:
     return f"{prefix}-" + content_key(IDENTIFICATION_CODE_VERSION, *parts)
 
 
+def _measurements_key(m: Measurements) -> tuple:
+    """What a Measurements' content is: its table and its measured poses."""
+    return m.table, pd.DataFrame(m.T.reshape(len(m), -1))
+
+
 def _truth_key(truth: ErrorModel | None):
     return None if truth is None else truth.to_dict()
 
@@ -42,8 +47,7 @@ def measurements_task(images: pd.DataFrame, poses: pd.DataFrame) -> Measurements
 
 
 @task(name="identify", persist_result=True,
-      cache_key_fn=lambda c, p: _key("identify", p["measurements"].table,
-                                     pd.DataFrame(p["measurements"].T.reshape(len(p["measurements"]), -1)),
+      cache_key_fn=lambda c, p: _key("identify", *_measurements_key(p["measurements"]),
                                      p["machine"].source, _truth_key(p["truth"]),
                                      None if p["base"] is None else p["base"].to_dict()))
 def identify_task(machine: Machine, measurements: Measurements, truth: ErrorModel | None,
@@ -77,8 +81,7 @@ def formulations_task(machine: Machine, model: ErrorModel, commands: np.ndarray)
 
 @task(name="cross-validate", persist_result=True,
       cache_key_fn=lambda c, p: _key("cv", p["model"].to_dict(), [s.name for s in p["specs"]],
-                                     p["measurements"].table,
-                                     pd.DataFrame(p["measurements"].T.reshape(len(p["measurements"]), -1)),
+                                     *_measurements_key(p["measurements"]),
                                      p["machine"].source))
 def cross_validate_task(machine: Machine, model: ErrorModel, specs: list, measurements: Measurements) -> float:
     """Cross-validated RMS of the whitened five-axis residuals (:func:`tasks.model_ladder.cross_validated_rms`)."""
@@ -88,8 +91,7 @@ def cross_validate_task(machine: Machine, model: ErrorModel, specs: list, measur
 
 
 @task(name="diagnose", persist_result=True,
-      cache_key_fn=lambda c, p: _key("diagnose", p["result"].model.to_dict(), p["measurements"].table,
-                                     pd.DataFrame(p["measurements"].T.reshape(len(p["measurements"]), -1)),
+      cache_key_fn=lambda c, p: _key("diagnose", p["result"].model.to_dict(), *_measurements_key(p["measurements"]),
                                      p["machine"].source, sorted(EFFECTS)))
 def diagnose_task(machine: Machine, measurements: Measurements, result: CalibrationResult):
     """Which catalogue effect the model lacks (:func:`tasks.diagnosis.diagnose.diagnose`)."""

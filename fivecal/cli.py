@@ -225,11 +225,13 @@ def detect(
 
 
 def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports: Path,
-                   add_effect: list[str] | None, effect_module: list[str] | None) -> dict:
+                   add_effect: list[str] | None, effect_module: list[str] | None,
+                   dask_address: str | None = None, dask_workers: int | None = None) -> dict:
     """Check the effect options (a bad spec or module is a usage error), then run the calibrate flow on a
     campaign that passes the campaign-level checks; returns the flow's summary."""
     from tasks.effects import load_effect_modules, parse_effect
 
+    _check_dask(dask_address, dask_workers)
     try:
         load_effect_modules(effect_module or [])
         for spec in add_effect or []:
@@ -241,7 +243,8 @@ def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports:
         from flows.calibrate import calibrate_campaign
 
         return calibrate_campaign(str(campaign), None if results is None else str(results), detector, str(reports),
-                                  effects=list(add_effect or []), effect_modules=list(effect_module or []))
+                                  effects=list(add_effect or []), effect_modules=list(effect_module or []),
+                                  dask_address=dask_address, dask_workers=dask_workers)
 
     return _on_valid_campaign(campaign, run)
 
@@ -258,9 +261,12 @@ def calibrate(
                                                                "family:key=value,... (repeatable)")] = None,
     effect_module: Annotated[list[str] | None, typer.Option(help="import a module that registers user-written "
                                                                   "effect families (repeatable)")] = None,
+    dask_address: DaskAddress = None,
+    dask_workers: DaskWorkers = None,
 ) -> None:
     """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
-    summary = _run_calibrate(campaign, results, detector, reports, add_effect, effect_module)
+    summary = _run_calibrate(campaign, results, detector, reports, add_effect, effect_module, dask_address,
+                             dask_workers)
     typer.echo(f"campaign {summary['campaign_id']}: fit σ² = {summary['sigma2']:.3g} (1 = as the pose covariances "
                f"predict); cached: {summary['cached']}")
     typer.echo("mean tip errors of the validation poses:")

@@ -21,6 +21,7 @@ from prefect.task_runners import ThreadPoolTaskRunner
 import fivecal
 from flows.ingest import ingest_campaign
 from flows.measure import measure_campaign
+from flows.runners import image_task_runner
 from tasks.calibration_steps import (
     IDENTIFICATION_CODE_VERSION,
     capture_task,
@@ -76,8 +77,13 @@ def _measure_capture(folder: Path, results_root: str | None, cameras: dict, dete
 @flow(name="calibrate-campaign", task_runner=ThreadPoolTaskRunner(max_workers=os.cpu_count() or 2))
 def calibrate_campaign(campaign: str, results_root: str | None = None, detector: str = "rrht",
                        reports_root: str = "reports", run: str | None = None, effects: list[str] | None = None,
-                       effect_modules: list[str] | None = None) -> dict[str, Any]:
+                       effect_modules: list[str] | None = None, dask_address: str | None = None,
+                       dask_workers: int | None = None) -> dict[str, Any]:
     """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path.
+
+    dask_address, dask_workers: where the campaign's image work (ingest, detection, camera
+    calibration, poses) runs (flows.runners.image_task_runner); the fit and the simulated
+    verification capture run in this process.
 
     effects: effect specs (``family:key=value,...``) added to the model, their amplitudes fitted with
     the constant parameters (``fivecal calibrate --add-effect``). effect_modules: dotted module paths
@@ -88,7 +94,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     base = ErrorModel(effects=[parse_effect(s) for s in effects or []])
     folder = Path(campaign).resolve()
     root = None if results_root is None else Path(results_root)
-    measured = measure_campaign(str(folder), results_root, detector)
+    measure = measure_campaign.with_options(task_runner=image_task_runner(dask_address, dask_workers))
+    measured = measure(str(folder), results_root, detector)
     metadata = load_campaign_metadata(folder)
     campaign_id = metadata["campaign_id"]
     machine = nominal_machine(metadata)

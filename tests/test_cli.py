@@ -64,3 +64,10 @@ def test_detect_names_an_unreadable_image(tmp_path):
     bad.write_bytes(b"not a png")
     result = runner.invoke(app, ["detect", str(bad)])
     assert result.exit_code == 2 and "broken.png" in result.output
+
+
+def test_calibrate_refuses_both_an_existing_and_a_local_dask_cluster(tmp_path):
+    result = runner.invoke(app, ["calibrate", str(tmp_path), "--dask-address", "tcp://127.0.0.1:8786",
+                                 "--dask-workers", "2"])
+    assert result.exit_code == 2
+    assert "not both" in result.output

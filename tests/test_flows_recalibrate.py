@@ -10,6 +10,7 @@ from prefect import flow
 
 import flows.recalibrate as recalibrate
 from tasks.campaign_plan import CampaignPlan
+from tasks.lake_schema import partition_problems
 from tasks.recalibration_ledger import Ledger
 from tasks.results_lake import read_table
 from tasks.simulate import write_campaign
@@ -81,6 +82,8 @@ def test_each_dropped_campaign_is_calibrated_exactly_once(prefect_harness, tmp_p
 
     # the second tick's drift report covers both campaigns, w1 (captured first) the reference
     drift = read_table("drift", results)
+    drift_files = sorted((results / "drift").rglob("*.parquet"))
+    assert drift_files and all(partition_problems("drift", f) == [] for f in drift_files)  # the lake contract
     assert set(drift.campaign_id) == {"w1", "w2"} and (drift.reference_campaign_id == "w1").all()
     times = drift.groupby("campaign_id")["time"].first()
     assert times["w2"] - times["w1"] == pd.Timedelta(days=7)

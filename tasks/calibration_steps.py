@@ -16,6 +16,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from tasks.compensation import compensate
+from tasks.diagnosis.diagnose import DIAGNOSIS_CODE_VERSION
 from tasks.effects import EFFECTS
 from tasks.error_model import ErrorModel
 from tasks.formulations import compare_formulations
@@ -91,8 +92,8 @@ def cross_validate_task(machine: Machine, model: ErrorModel, specs: list, measur
 
 
 @task(name="diagnose", persist_result=True,
-      cache_key_fn=lambda c, p: _key("diagnose", p["result"].model.to_dict(), *_measurements_key(p["measurements"]),
-                                     p["machine"].source, sorted(EFFECTS)))
+      cache_key_fn=lambda c, p: _key("diagnose", DIAGNOSIS_CODE_VERSION, p["result"].model.to_dict(),
+                                     *_measurements_key(p["measurements"]), p["machine"].source, sorted(EFFECTS)))
 def diagnose_task(machine: Machine, measurements: Measurements, result: CalibrationResult):
     """Which catalogue effect the model lacks (:func:`tasks.diagnosis.diagnose.diagnose`)."""
     from tasks.diagnosis.diagnose import diagnose

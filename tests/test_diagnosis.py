@@ -130,6 +130,23 @@ def test_a_campaign_without_hidden_effect_reports_nothing_significant(machine, n
     assert len(t) >= 30  # every built-in family, per axis / camera / driver
 
 
+def test_a_detectable_but_immaterial_effect_is_named_and_not_accepted(machine, frame):
+    """A 0.7 µm backlash of X is real and detectable (cross-validated p < 1e-3), but it lowers the
+    cross-validated RMS by about 3 %: below MIN_GAIN (5 %) it is not accepted, and the verdict says
+    it was detected and by how little it would help. With min_gain=0 the same data accept it."""
+    meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=0.7")])
+    result = calibrate(machine, meas)
+    d = diagnose(machine, meas, result, max_effects=1)
+    top = d.table.iloc[0]
+    assert (top.family, top.axis, bool(top.accepted), bool(top.significant)) == ("backlash", "X", False, False)
+    gain = 1 - top.cv_rms / d.cv_rms_before
+    assert 0.01 < gain < 0.05, gain
+    assert d.best is None and d.sentences[0].startswith("Nothing significant")
+    assert "it is detectable, but it lowers the cross-validated RMS by only" in d.sentences[0]
+    loose = diagnose(machine, meas, result, max_effects=1, min_gain=0.0)
+    assert loose.accepted and parse_effect(loose.best).family == "backlash"
+
+
 def test_time_and_temperature_that_move_together_are_reported_as_one_group(machine):
     """A campaign whose temperature rises in proportion to time cannot tell a thermal drift driven by
     time from one driven by temperature: both are reported as one group, none is accepted, and the

@@ -352,7 +352,7 @@ _TABLES = (
         _c("bic", "float64", meaning="M ln(RSS/M) + k ln M over the M whitened fit residuals, k identifiable "
            "parameters (lower is better; compare steps of one campaign)"),
         _c("created_at", "timestamp[us, UTC]", "UTC", meaning="when the step was computed", reproducible=False))),
-    TableSchema("diagnosis", 1, "candidate effect the model lacks, scored against the fit's residual",
+    TableSchema("diagnosis", 2, "candidate effect the model lacks, scored against the fit's residual",
                 "tasks/diagnosis/diagnose.py (fivecal calibrate / fivecal diagnose)", (PARTITION, "rank"), (
         _i("rank", "1 = first accepted effect or, with none accepted, the strongest candidate"),
         _s("family", "effect family (tasks/effects.py or a user module)"),
@@ -368,8 +368,9 @@ _TABLES = (
            "carries the PDGE profiles' uncertainty (0..1)"),
         _i("step", "acceptance round the row was scored in"),
         _c("accepted", "bool", meaning="accepted (significant, ΔBIC < −10, confirmed by cross-validation)"),
-        _c("significant", "bool", meaning="p below alpha after the Bonferroni factor, ΔBIC < −10, identifiable and "
-           "confirmed by the cross-validated refit"),
+        _c("significant", "bool", meaning="p below alpha after the Bonferroni factor, ΔBIC < −10, identifiable, "
+           "confirmed by the cross-validated refit, and material: the cross-validated RMS falls by at least "
+           "5 % (MIN_GAIN)"),
         _s("group", "name of the group of candidates this campaign cannot tell apart (empty: none)"),
         _c("absorbed", "bool", meaning="the PDGE splines and constant parameters already reproduce it"),
         _c("identifiable", "bool", meaning="the campaign's poses identify it"),

@@ -20,7 +20,7 @@ out (eq. 2, :mod:`tasks.diagnosis.score`). Candidates are ranked by ΔBIC. The l
   significantly (paired test, p < ``alpha``) and by a material amount: the cross-validated RMS falls
   by at least ``min_gain`` (5 % by default). With ten thousand residuals a p-value alone flags any
   trace of structure — on an image campaign with no hidden effect the camera self-calibration's own
-  bias lets ``lens_distortion`` lower the CV RMS by 1.6 % at p < 1e-9 — and a term that changes the
+  bias lets ``lens_distortion`` lower the CV RMS by 2.0 % at p = 8e-9 — and a term that changes the
   prediction by that little is not worth a model parameter. Such candidates are named, with their
   gain, as detectable but not material;
 - no other significant candidate explains the residual as well: if adding the leader to a model that

@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from fivecal import lake_cli, recalibrate_cli
+from fivecal.options import DaskAddress, DaskWorkers, DetectorOption, ResultsOption
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
@@ -17,11 +18,6 @@ DEMO_CAMPAIGN = Path("data/campaigns/demo")
 # The temporary Prefect server would try to send telemetry; these machines have no network for it.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 
-# Where the image work runs (flows/runners.py); both absent: threads of this process.
-DaskAddress = Annotated[str | None, typer.Option(help="scheduler address of an existing Dask cluster for the image "
-                                                      "work, e.g. tcp://10.0.0.5:8786")]
-DaskWorkers = Annotated[int | None, typer.Option(min=1, help="run the image work on a local Dask cluster of N "
-                                                             "worker processes")]
 
 
 def _check_dask(dask_address: str | None, dask_workers: int | None) -> None:
@@ -82,8 +78,7 @@ def _on_valid_campaign(campaign: Path, run):
 @app.command()
 def ingest(
     campaign: Annotated[Path, typer.Argument(help="campaign folder")],
-    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
-    = None,
+    results: ResultsOption = None,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
 ) -> None:
@@ -105,9 +100,8 @@ def ingest(
 @app.command()
 def measure(
     campaign: Annotated[Path, typer.Argument(help="campaign folder")],
-    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
-    = None,
-    detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
+    results: ResultsOption = None,
+    detector: DetectorOption = "rrht",
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
 ) -> None:
@@ -156,8 +150,7 @@ def _print_table3(table: Path, campaign: Path) -> None:
 @app.command("compare-detectors")
 def compare_detectors(
     campaign: Annotated[Path, typer.Argument(help="campaign folder (simulated: errors are scored against its truth)")],
-    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
-    = None,
+    results: ResultsOption = None,
     detector: Annotated[list[str] | None, typer.Option(help="detectors to compare (repeatable)")] = None,
     max_images_per_camera: Annotated[int, typer.Option(help="images sampled per camera")] = 20,
     repeats: Annotated[int, typer.Option(help="timed runs per image and detector")] = 1,
@@ -179,7 +172,7 @@ def detect(
     pitch_mm: Annotated[float, typer.Option(help="centre-to-centre dot spacing (mm)")] = 5.0,
     diameter_mm: Annotated[float, typer.Option(help="dot diameter (mm)")] = 2.5,
     light_dots: Annotated[bool, typer.Option(help="light dots on a dark plate")] = False,
-    detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
+    detector: DetectorOption = "rrht",
     rotation_deg: Annotated[float | None, typer.Option(help="expected in-plane rotation of the grid (deg)")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
 ) -> None:
@@ -252,9 +245,8 @@ def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports:
 @app.command()
 def calibrate(
     campaign: Annotated[Path, typer.Argument(help="campaign folder")],
-    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
-    = None,
-    detector: Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")] = "rrht",
+    results: ResultsOption = None,
+    detector: DetectorOption = "rrht",
     reports: Annotated[Path, typer.Option(help="reports root; the report goes to <reports>/<campaign_id>/<run>/")]
     = Path("reports"),
     add_effect: Annotated[list[str] | None, typer.Option(help="add an effect to the model and fit it: "
@@ -280,8 +272,7 @@ def calibrate(
 @app.command()
 def diagnose(
     campaign: Annotated[Path, typer.Argument(help="campaign folder")],
-    results: Annotated[Path | None, typer.Option(help="results root (default data/results, or $FIVECAL_RESULTS_DIR)")]
-    = None,
+    results: ResultsOption = None,
     reports: Annotated[Path, typer.Option(help="reports root")] = Path("reports"),
     add_effect: Annotated[list[str] | None, typer.Option(help="effects already in the model (repeatable)")] = None,
     effect_module: Annotated[list[str] | None, typer.Option(help="module registering user effects (repeatable)")]

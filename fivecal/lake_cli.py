@@ -10,12 +10,12 @@ from typing import Annotated
 
 import typer
 
-RESULTS_HELP = "results root (default data/results, or $FIVECAL_RESULTS_DIR)"
+from fivecal.options import ResultsOption
 
 
 def query(
     sql: Annotated[str, typer.Argument(help="SQL over the lake; every table is a view, plus lake_partitions")],
-    results: Annotated[Path | None, typer.Option(help=RESULTS_HELP)] = None,
+    results: ResultsOption = None,
     format: Annotated[str, typer.Option("--format", help="table, csv or json")] = "table",
     max_rows: Annotated[int, typer.Option(help="rows printed by --format table (0: all)")] = 100,
 ) -> None:

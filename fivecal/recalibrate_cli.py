@@ -12,7 +12,10 @@ from typing import Annotated, Any
 
 import typer
 
-RESULTS_HELP = "results root (default data/results, or $FIVECAL_RESULTS_DIR); the ledger is in <results>/.recalibration"
+from fivecal.options import RESULTS_HELP as BASE_RESULTS_HELP
+from fivecal.options import DetectorOption
+
+RESULTS_HELP = f"{BASE_RESULTS_HELP}; the ledger is in <results>/.recalibration"
 REPORTS_HELP = "reports root: calibration reports in <reports>/<campaign_id>/, the drift report in <reports>/drift/"
 TOLERANCE_HELP = ("drift tolerance KEY=VALUE (repeatable): abs_um, abs_arcsec, k, require (both|abs|sig|either), "
                   "after_position_um, after_orientation_arcsec")
@@ -22,7 +25,6 @@ ReportsOption = Annotated[Path, typer.Option("--reports", help=REPORTS_HELP)]
 ToleranceOption = Annotated[list[str] | None, typer.Option("--tolerance", help=TOLERANCE_HELP)]
 ReferenceOption = Annotated[str | None, typer.Option(help="campaign_id drift is measured from (default: earliest)")]
 SettleOption = Annotated[float, typer.Option(help="seconds a folder must be unchanged before it is calibrated")]
-DetectorOption = Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")]
 
 
 def parse_tolerance(specs: list[str] | None):

@@ -1,0 +1,17 @@
+"""Command-line options several commands share (typer ``Annotated`` aliases)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+RESULTS_HELP = "results root (default data/results, or $FIVECAL_RESULTS_DIR)"
+ResultsOption = Annotated[Path | None, typer.Option(help=RESULTS_HELP)]
+DetectorOption = Annotated[str, typer.Option(help="rrht (the paper's framework), blob or hough")]
+# Where the image work runs (flows/runners.py); both absent: threads of this process.
+DaskAddress = Annotated[str | None, typer.Option(help="scheduler address of an existing Dask cluster for the image "
+                                                      "work, e.g. tcp://10.0.0.5:8786")]
+DaskWorkers = Annotated[int | None, typer.Option(min=1, help="run the image work on a local Dask cluster of N "
+                                                             "worker processes")]

@@ -18,9 +18,8 @@ profile changes by ΔP_j = I_j G_j H_j A_j ΔE_j: this is how much of the effect
 swallows. A cyclic error whose period the sweep's steps resolve but the spline smooths keeps most
 of its signature; a linear or slowly varying one is swallowed whole.
 
-λ_jc is found as scipy's ``make_smoothing_spline`` finds it (the same criterion,
-GCV(λ) = n‖y − H_λ y‖² / (n − tr H_λ)², minimised by the same bounded search on [0, n]) on
-the mean error motions of the extraction's model, so H_jc is the smoother the extraction used
+λ_jc is found as the extraction finds it (:func:`tasks.identification.smoothing.gcv_roughness`)
+on the mean error motions of the extraction's model, so H_jc is the smoother the extraction used
 (tests/test_diagnosis.py checks the profiles it gives against the extraction's).
 """
 
@@ -29,58 +28,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from tasks.error_model import COMPONENT_SCALE, ErrorModel
 from tasks.identification.measurements import Measurements
 from tasks.identification.pdge_extraction import TabulatedProfile, line_error_signatures, measured_error_motions
+from tasks.identification.smoothing import MIN_POINTS, gcv_roughness, hat_matrix
 from tasks.machine import AXIS_ORDER, Machine
-
-MIN_SMOOTHED = 5  # fewer positions: the extraction does not smooth (_smooth in pdge_extraction)
-
-
-def penalty_matrix(x: np.ndarray) -> np.ndarray:
-    """(K, K) roughness matrix R of the natural cubic spline through abscissas ``x``: ∫ f''² = gᵀ R g for
-    the spline's values g at x (Green & Silverman's Q T⁻¹ Qᵀ)."""
-    h = np.diff(x)
-    n = x.size
-    Q = np.zeros((n, n - 2))
-    T = np.zeros((n - 2, n - 2))
-    for j in range(1, n - 1):
-        Q[j - 1, j - 1] = 1.0 / h[j - 1]
-        Q[j, j - 1] = -1.0 / h[j - 1] - 1.0 / h[j]
-        Q[j + 1, j - 1] = 1.0 / h[j]
-        T[j - 1, j - 1] = (h[j - 1] + h[j]) / 3.0
-        if j < n - 2:
-            T[j - 1, j] = T[j, j - 1] = h[j] / 6.0
-    return Q @ np.linalg.solve(T, Q.T)
-
-
-def hat_matrix(x: np.ndarray, w: np.ndarray, lam: float) -> np.ndarray:
-    """(K, K) hat matrix of the weighted cubic smoothing spline through abscissas ``x`` at roughness ``lam``
-    (minimising Σ wᵢ (yᵢ − f(xᵢ))² + λ ∫ f''², as ``scipy.interpolate.make_smoothing_spline``):
-    fitted values = H @ y = (W + λ R)⁻¹ W y. w: (K,) weights (normalised to mean 1, as the extraction does)."""
-    W = np.diag(w)
-    return np.linalg.solve(W + lam * penalty_matrix(x), W)
-
-
-def gcv_roughness(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
-    """λ minimising GCV(λ) = (1/n)‖y − H_λ y‖² / (1 − tr H_λ / n)² on [0, n] (scipy's criterion and search).
-
-    With S = W^(-1/2) R W^(-1/2) = U diag(d) Uᵀ: H_λ = W^(-1/2) U diag(1/(1 + λd)) Uᵀ W^(1/2), so each
-    evaluation costs O(K²)."""
-    n = x.size
-    sw = np.sqrt(w)
-    d, U = np.linalg.eigh(penalty_matrix(x) / np.outer(sw, sw))
-    d = np.clip(d, 0.0, None)
-    z = U.T @ (sw * y / (np.max(np.abs(y)) or 1.0))  # GCV is scale free in y
-
-    def gcv(lam: float) -> float:
-        shrink = lam * d / (1.0 + lam * d)
-        res = (U @ (shrink * z)) / sw
-        return float(res @ res / n / (1.0 - np.sum(1.0 / (1.0 + lam * d)) / n) ** 2)
-
-    return float(minimize_scalar(gcv, bounds=(0, n), method="bounded").x)
 
 
 def gauge_operator(machine: Machine, axis: str, q: np.ndarray) -> np.ndarray:
@@ -189,7 +142,7 @@ def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis
     average /= count[:, None]
     q = machine.axes[axis].to_internal(positions)
     hat = np.broadcast_to(np.eye(k), (6, k, k)).copy()
-    if k >= MIN_SMOOTHED:
+    if k >= MIN_POINTS:
         w = count / count.mean()  # the extraction's weights count/pooled, normalised: pooled cancels
         mean = average @ E
         for c in range(6):

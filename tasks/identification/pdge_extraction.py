@@ -31,11 +31,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
-from scipy.interpolate import CubicSpline, make_smoothing_spline
+from scipy.interpolate import CubicSpline
 
 from tasks import se3
 from tasks.error_model import COMPONENT_SCALE, ERROR_COMPONENTS, ErrorModel
 from tasks.identification.measurements import Measurements
+from tasks.identification.smoothing import smooth
 from tasks.kinematics import forward, ideal_joint_motion
 from tasks.machine import AXIS_ORDER, Machine
 
@@ -111,14 +112,6 @@ def measured_error_motions(machine: Machine, model: ErrorModel, sweep: Measureme
     return error_motion_components(Q @ D @ se3.inverse(Q))
 
 
-def _smooth(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted smoothing spline through (x, y) with GCV-chosen roughness, evaluated at x."""
-    if x.size < 5:
-        return y.copy()
-    w = w / w.mean()  # GCV is scale-free in the weights but ill-conditioned for weights ~1e8
-    return make_smoothing_spline(x, y, w=w)(x)
-
-
 def line_error_basis(machine: Machine, axis: str) -> np.ndarray:
     """(m, 6) unit error screws (joint frame) that move ``axis``' line: for a linear axis the two
     rotations that tilt its direction (m = 2), for a rotary axis also the two translations that
@@ -161,16 +154,20 @@ def referred_to_home(machine: Machine, axis: str, q: np.ndarray, values: np.ndar
 class PdgeResult:
     """table: the ``pdge`` lake table (see docs/results). profiles: {axis: TabulatedProfile}
     referred to home (mm, rad). line_errors: {axis: (m,) the line-error coefficients removed
-    (mm / rad, rows of :func:`line_error_basis`)}."""
+    (mm / rad, rows of :func:`line_error_basis`)}. smoothing: {axis: (6,) the spline roughness λ
+    of each component (:mod:`tasks.identification.smoothing`)}."""
 
     table: pd.DataFrame
     profiles: dict[str, TabulatedProfile]
     line_errors: dict[str, np.ndarray]
+    smoothing: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis: str,
-                 truth: ErrorModel | None = None) -> tuple[pd.DataFrame, TabulatedProfile, np.ndarray]:
-    """The PDGE rows, smooth referred profile and removed line errors of one axis from its sweep."""
+                 truth: ErrorModel | None = None, lam: np.ndarray | None = None
+                 ) -> tuple[pd.DataFrame, TabulatedProfile, np.ndarray, np.ndarray]:
+    """The PDGE rows, smooth referred profile, removed line errors and spline roughness (6,) of one
+    axis from its sweep. lam: the roughness to use (default: chosen by GCV)."""
     e = measured_error_motions(machine, model, sweep, axis)  # (N, 6) mm, rad
     pos_cmd = sweep.table[axis].to_numpy(dtype=float)
     frame = pd.DataFrame(e, columns=ERROR_COMPONENTS).assign(position=pos_cmd)
@@ -190,7 +187,9 @@ def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis:
     pooled = np.maximum(pooled, 1e-18)
     std = np.sqrt(pooled[None, :] / count[:, None])
     values = mean.to_numpy()
-    fitted = np.column_stack([_smooth(q, values[:, k], count / pooled[k]) for k in range(6)])
+    # one weight per position (the repeats' count): the pooled variance of a component scales all
+    # its weights alike, and the smoother is invariant to that
+    fitted, lam = smooth(q, values, count, lam)
     raw_profile = TabulatedProfile(q, fitted)
     fit_ref, line = referred_to_home(machine, axis, q, fitted, raw_profile)
     meas_ref, _ = referred_to_home(machine, axis, q, values, raw_profile)
@@ -209,21 +208,24 @@ def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis:
             rows[f"truth_{col}"] = true_ref[:, k] / COMPONENT_SCALE[k]
     rows["translation_um"] = np.linalg.norm(rows[list(COMPONENT_COLUMNS[:3])].to_numpy(), axis=1)
     rows["rotation_arcsec"] = np.linalg.norm(rows[list(COMPONENT_COLUMNS[3:])].to_numpy(), axis=1)
-    return rows, profile, line
+    return rows, profile, line, lam
 
 
 def extract_pdges(machine: Machine, model: ErrorModel, measurements: Measurements,
-                  truth: ErrorModel | None = None) -> PdgeResult:
-    """PDGEs of every axis that has a sweep (stage ``pdge``, group = axis name)."""
-    tables, profiles, lines = [], {}, {}
+                  truth: ErrorModel | None = None, smoothing: dict[str, np.ndarray] | None = None) -> PdgeResult:
+    """PDGEs of every axis that has a sweep (stage ``pdge``, group = axis name).
+
+    smoothing: {axis: (6,) λ} to hold the smoothers of an earlier extraction (default: GCV)."""
+    tables, profiles, lines, lams = [], {}, {}, {}
     sweeps = measurements.stage("pdge")
     for axis in AXIS_ORDER:
         sweep = sweeps.select(sweeps.table.group == axis)
         if len(sweep) < 2:
             continue
-        rows, profile, line = extract_axis(machine, model, sweep, axis, truth)
+        rows, profile, line, lams[axis] = extract_axis(machine, model, sweep, axis, truth,
+                                                       None if smoothing is None else smoothing.get(axis))
         tables.append(rows)
         profiles[axis] = profile
         lines[axis] = line
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
-    return PdgeResult(table, profiles, lines)
+    return PdgeResult(table, profiles, lines, lams)

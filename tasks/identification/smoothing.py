@@ -1,0 +1,91 @@
+"""Weighted cubic smoothing splines with the roughness chosen by generalised cross-validation.
+
+SYNOPSIS
+    >>> fitted, lam = smooth(x, Y, w)            # GCV picks one λ per column of Y
+    >>> again, _ = smooth(x, Y + dY, w, lam)     # the same linear smoother, λ held
+
+The problem is scipy's ``make_smoothing_spline``: minimise Σ wᵢ (yᵢ − f(xᵢ))² + λ ∫ f''² over
+natural cubic splines f with knots at x, and with λ unset choose it by minimising
+
+    GCV(λ) = (1/n) Σ (yᵢ − f_λ(xᵢ))² / (1 − tr H(λ)/n)²,   λ ∈ (0, n)  (bounded Brent),
+
+as scipy does. scipy evaluates GCV with a per-element Python loop (most of the time of a PDGE
+extraction) and does not return the λ it chose; the uncertainty propagation
+(:mod:`tasks.identification.uncertainty`) needs λ to hold the smoother fixed while it perturbs
+the data. Here GCV is evaluated in the Demmler–Reinsch basis: with the penalty matrix
+K = Q R⁻¹ Qᵀ of the natural cubic spline (Green & Silverman, *Nonparametric Regression and
+Generalized Linear Models*, §2.1), B = W^-½ K W^-½ = U diag(d) Uᵀ gives
+
+    H(λ) = W^-½ U diag(1 / (1 + λ d)) Uᵀ W^½,   tr H(λ) = Σ 1 / (1 + λ dᵢ),
+
+so each evaluation is O(n), and the fitted values are H(λ) y. The result is scipy's up to the
+tolerance of the λ search (tests/test_identification.py compares them).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+MIN_POINTS = 5
+"""Fewer points are returned unsmoothed (scipy needs at least 5)."""
+
+
+def penalty_matrix(x: np.ndarray) -> np.ndarray:
+    """(n, n) K with ∫ f''² = gᵀ K g for the natural cubic spline through the values g at the
+    strictly increasing abscissas x (n,): Green & Silverman's Q R⁻¹ Qᵀ (units: 1 / x³)."""
+    x = np.asarray(x, dtype=float)
+    n = x.size
+    h = np.diff(x)
+    Q = np.zeros((n, n - 2))
+    j = np.arange(n - 2)
+    Q[j, j] = 1.0 / h[:-1]
+    Q[j + 1, j] = -1.0 / h[:-1] - 1.0 / h[1:]
+    Q[j + 2, j] = 1.0 / h[1:]
+    R = np.diag((h[:-1] + h[1:]) / 3.0)
+    R[j[:-1], j[:-1] + 1] = R[j[:-1] + 1, j[:-1]] = h[1:-1] / 6.0
+    return Q @ np.linalg.solve(R, Q.T)
+
+
+def hat_matrix(x: np.ndarray, w: np.ndarray, lam: float) -> np.ndarray:
+    """(n, n) hat matrix of the smoothing spline through x at roughness ``lam``: fitted values
+    H @ y = (W + λ K)⁻¹ W y. w: (n,) weights (normalised to mean 1, as :func:`smooth` does)."""
+    W = np.diag(w)
+    return np.linalg.solve(W + lam * penalty_matrix(x), W)
+
+
+def gcv_roughness(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
+    """λ minimising GCV(λ) for the values y (n,) with weights w (n,), over (0, n) by scipy's
+    bounded search. Each evaluation is O(n) in the Demmler–Reinsch basis (module docstring)."""
+    n = x.size
+    sw = np.sqrt(w)
+    d, U = np.linalg.eigh(penalty_matrix(x) / np.outer(sw, sw))
+    d = np.clip(d, 0.0, None)  # the two zero eigenvalues (straight lines) come out at ±rounding
+    z = U.T @ (sw * y / (np.max(np.abs(y)) or 1.0))  # GCV's minimiser is scale free in y
+
+    def gcv(lam: float) -> float:
+        shrink = lam * d / (1.0 + lam * d)  # 1 − the eigenvalues of H
+        res = (U @ (shrink * z)) / sw
+        return float(res @ res / n / (1.0 - np.sum(1.0 / (1.0 + lam * d)) / n) ** 2)
+
+    est = minimize_scalar(gcv, bounds=(0, n), method="bounded")
+    if not est.success:
+        raise ValueError(f"no minimum of the GCV function: {est.message}")
+    return float(est.x)
+
+
+def smooth(x: np.ndarray, Y: np.ndarray, w: np.ndarray, lam: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothing spline of each column of Y (n, m) through x (n,), evaluated at x.
+
+    w: (n,) weights (only their ratios matter; they are normalised to mean 1, which keeps the
+    λ search well conditioned). lam: (m,) roughness per column; None chooses it by GCV.
+    Returns (fitted (n, m), λ (m,)); with fewer than MIN_POINTS points, (Y, NaN)."""
+    x, Y = np.asarray(x, float), np.asarray(Y, float)
+    if x.size < MIN_POINTS:
+        return Y.copy(), np.full(Y.shape[1], np.nan)
+    w = np.asarray(w, float) / np.mean(w)
+    if lam is None:
+        lam = np.array([gcv_roughness(x, Y[:, k], w) for k in range(Y.shape[1])])
+    fitted = np.column_stack([hat_matrix(x, w, float(lam[k])) @ Y[:, k] for k in range(Y.shape[1])])
+    return fitted, lam

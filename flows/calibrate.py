@@ -30,6 +30,7 @@ from tasks.calibration_steps import (
     diagnose_task,
     formulations_task,
     identify_task,
+    propagate_task,
     report_task,
 )
 from tasks.compensation import compensation_table, desired_tip_poses
@@ -38,13 +39,20 @@ from tasks.effects import load_effect_modules, parse_effect
 from tasks.error_model import ErrorModel
 from tasks.identification.measurements import assemble_measurements
 from tasks.identification.pige_identification import null_space_sentences
+from tasks.identification.uncertainty import expected_tip_errors
 from tasks.ingest import load_campaign_metadata
 from tasks.model_ladder import append_step, ladder_step
 from tasks.report import ReportData
 from tasks.report.residual_figures import residual_report
 from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
 from tasks.results_lake import partition_path, read_table, write_partition
-from tasks.verification import capture_errors, true_errors, vbm_errors, verification_table
+from tasks.verification import (
+    capture_errors,
+    true_errors,
+    vbm_errors,
+    verification_table,
+    with_model_uncertainty,
+)
 from tasks.verification_capture import is_simulated
 from tasks.vision import content_key, expected_rotations, nominal_machine, plates_by_camera
 from tasks.vision_steps import detect_chunk, poses
@@ -116,6 +124,11 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     logger.info(f"PIGE fit: {fit.iterations} LM iterations, σ² = {fit.sigma2:.3g}, "
                 f"{int(fit.identifiable.sum())}/{fit.identifiable.size} parameters identifiable")
 
+    dots = read_table("dots", root, campaign_id)
+    logger.info("propagating the camera self-calibration and the pose noise into the parameters' uncertainty")
+    prop_future = propagate_task.submit(machine, measurements, result, calibration, dots, images, cameras,
+                                        plates_of(machine))  # runs beside the compensation and the capture
+
     validation = measurements.stage("validation", camera=VALIDATION_CAMERA)
     ids = validation.table.image_id.tolist()
     commands = validation.commands
@@ -139,6 +152,11 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
         parts[("after", "truth")] = (ids, true_errors(machine, truth, desired, compensated))
     else:
         logger.warning("not a simulated campaign: the after-compensation capture must come from the lab")
+    propagated = prop_future.result()
+    cached["propagate_uncertainty"] = prop_future.state.name == "Cached"
+    if propagated is not None:  # how far the model's own uncertainty lets the tip miss, per phase
+        parts = with_model_uncertainty(parts, ids, {"before": commands, "after": compensated},
+                                       lambda c: expected_tip_errors(machine, result.model, propagated, c))
     verification = verification_table(parts)
     formulations = formulations_task.submit(machine, result.model,
                                             measurements.stage("pige").commands).result()
@@ -147,7 +165,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
                   "identification_code": IDENTIFICATION_CODE_VERSION, "effects": [e.spec() for e in base.effects],
                   "effect_modules": list(effect_modules or [])}
-    pdge_table, pige_table = result.pdge.table, result.pige_table()
+    pdge_table, pige_table = result.pdge.table, result.pige_table(propagated)
     tables = {}
     for name, df in (("pdge", pdge_table), ("pige", pige_table),
                      ("compensation", compensation_table(ids, commands, compensated)),
@@ -155,7 +173,6 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
         tables[name] = str(write_partition(name, campaign_id, df, provenance, root))
 
     # where the model fails: residuals against everything they could depend on, and the ladder
-    dots = read_table("dots", root, campaign_id)
     residuals = pose_residual_table(machine, result.model, measurements, dots)
     dot_residuals = dot_residual_table(dots, measurements, cameras, plates_of(machine))
     tables["residuals"] = str(write_partition("residuals", campaign_id, residuals, provenance, root))

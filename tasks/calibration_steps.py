@@ -22,11 +22,13 @@ from tasks.error_model import ErrorModel
 from tasks.formulations import compare_formulations
 from tasks.identification.measurements import Measurements, assemble_measurements
 from tasks.identification.pige_identification import CalibrationResult, calibrate
+from tasks.identification.uncertainty import NOISE_DRAWS, PropagatedUncertainty, propagate_uncertainty
+from tasks.intrinsics_uncertainty import intrinsics_covariances, pose_sensitivities
 from tasks.machine import Machine
 from tasks.verification_capture import simulate_capture
 from tasks.vision import content_key
 
-IDENTIFICATION_CODE_VERSION = "identification-2"
+IDENTIFICATION_CODE_VERSION = "identification-3"
 
 
 def _key(prefix: str, *parts) -> str:
@@ -55,6 +57,23 @@ def identify_task(machine: Machine, measurements: Measurements, truth: ErrorMode
                   base: ErrorModel | None = None) -> CalibrationResult:
     """PDGE extraction (eqs. 13–19) and PIGE identification (eq. 22)."""
     return calibrate(machine, measurements, truth, base=base)
+
+
+@task(name="propagate-uncertainty", persist_result=True,
+      cache_key_fn=lambda c, p: _key("uncertainty", p["result"].model.to_dict(), *_measurements_key(p["measurements"]),
+                                     p["calibration"], p["machine"].source, p["draws"]))
+def propagate_task(machine: Machine, measurements: Measurements, result: CalibrationResult, calibration: pd.DataFrame,
+                   dots: pd.DataFrame, images: pd.DataFrame, cameras: dict, plates: dict,
+                   draws: int = NOISE_DRAWS) -> PropagatedUncertainty | None:
+    """What the camera self-calibration and the pose noise through the PDGE extraction add to the
+    identified parameters' uncertainty (:mod:`tasks.identification.uncertainty`); None for fits with
+    added effects (their uncertainty stays the LM's)."""
+    if result.model.effects:
+        return None
+    covs = intrinsics_covariances(dots, images, cameras, plates)
+    sens = pose_sensitivities(dots, measurements.table["image_id"].tolist(), measurements.T, cameras, plates,
+                              measurements.table["camera"].tolist())
+    return propagate_uncertainty(machine, result, measurements, sens, covs, draws=draws)
 
 
 @task(name="compensate", persist_result=True,

@@ -65,7 +65,26 @@ def true_errors(machine: Machine, truth: ErrorModel, desired: np.ndarray, comman
     return tip_pose_error(forward(machine, commands, truth).tool_in_workpiece(), desired)
 
 
-def verification_table(parts: dict[tuple[str, str], tuple[list[str], pd.DataFrame]]) -> pd.DataFrame:
+Parts = dict[tuple[str, str], tuple[list[str], pd.DataFrame]]
+"""{(phase, source): (validation image_ids, their tip errors)}: the pieces of the verification table."""
+
+
+def with_model_uncertainty(parts: Parts, image_ids: list[str], commands: dict[str, np.ndarray], expected) -> Parts:
+    """``parts`` of :func:`verification_table` with the columns model_uncertainty_position_um and
+    model_uncertainty_orientation_arcsec: ``expected(commands)`` -> (µm (N,), arcsec (N,)), e.g.
+    :func:`tasks.identification.uncertainty.expected_tip_errors`, at each phase's commands
+    ({phase: (N, 5)} in the order of ``image_ids``), kept for the image_ids of each part."""
+    per_phase = {phase: expected(c) for phase, c in commands.items()}
+    out = {}
+    for (phase, source), (ids, df) in parts.items():
+        keep = np.isin(image_ids, ids)
+        pos, ori = per_phase[phase]
+        out[(phase, source)] = (ids, df.assign(model_uncertainty_position_um=pos[keep],
+                                               model_uncertainty_orientation_arcsec=ori[keep]))
+    return out
+
+
+def verification_table(parts: Parts) -> pd.DataFrame:
     """Stack {(phase, source): (validation image_ids, errors)} into the ``verification`` lake table."""
     frames = []
     for (phase, source), (image_ids, df) in parts.items():

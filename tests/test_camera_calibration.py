@@ -246,3 +246,41 @@ def test_end_to_end_on_rendered_images(machine, name):
     assert abs(err["focal_error_pct"]) < 0.05
     assert err["pp_error_px"] < 2.0
     assert err["distortion_max_px_seen"] < 0.1
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_intrinsics_covariance_reproduces_opencvs_standard_deviations(calibrations, trials, name):
+    """The full covariance of the joint fit (Schur complement over the views' poses) has OpenCV's
+    stdDeviationsIntrinsics on its diagonal: f, cx, cy (px) and the five distortion coefficients."""
+    from tasks.intrinsics_uncertainty import intrinsics_covariance
+
+    cal = calibrations[name]
+    views = [(o, m) for objs, imgs, _ in trials[name].values() for o, m in zip(objs, imgs, strict=True)]
+    cov = intrinsics_covariance(views, cal.best_estimate)
+    opencv = cal.joint.std_intrinsics[[1, 2, 3, 4, 5, 6, 7, 8]]  # fy's std stands for the one focal length
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), opencv, rtol=0.03)
+
+
+def test_pose_sensitivity_to_the_intrinsics_matches_a_re_estimated_pose(calibrations, trials):
+    """∂δ/∂θ of a PnP pose (first order) against estimating the pose again with each intrinsic moved."""
+    from dataclasses import replace
+
+    from tasks import se3
+    from tasks.intrinsics_uncertainty import pose_sensitivity
+    from tasks.poses import estimate_pose
+
+    cam = calibrations["camera1"].best_estimate
+    obj, img, _ = next(iter(trials["camera1"].values()))
+    base = estimate_pose(obj[0], img[0], cam)
+    S = pose_sensitivity(obj[0], base.T_cam_plate, cam)
+    steps = {0: ("focal_length_mm", 0.05 * cam.pixel_size_mm), 1: ("cx_px", 0.05), 2: ("cy_px", 0.05)}
+    for k, (field, step) in steps.items():
+        moved = estimate_pose(obj[0], img[0], replace(cam, **{field: getattr(cam, field) + step}))
+        delta = se3.log(se3.inverse(base.T_cam_plate) @ moved.T_cam_plate)
+        px = step / cam.pixel_size_mm if field == "focal_length_mm" else step
+        np.testing.assert_allclose(delta, S[:, k] * px, atol=2e-3 * np.abs(S[:, k] * px).max())
+    dist = np.array(cam.distortion)
+    dist[0] += 1e-3
+    moved = estimate_pose(obj[0], img[0], replace(cam, distortion=tuple(dist)))
+    delta = se3.log(se3.inverse(base.T_cam_plate) @ moved.T_cam_plate)
+    np.testing.assert_allclose(delta, S[:, 3] * 1e-3, atol=2e-3 * np.abs(S[:, 3] * 1e-3).max())

@@ -22,7 +22,8 @@ def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image
     n_chunks = again["cached"]["measure"]["detect"]
     assert n_chunks > 0  # (the first run may already hit: detection is keyed on image content)
     assert again["cached"] == {"measure": {"detect": n_chunks, "calibrate": 1, "poses": 1}, "identify": True,
-                               "compensate": True, "capture": True, "cross_validate": True, "diagnose": True}
+                               "propagate_uncertainty": True, "compensate": True, "capture": True,
+                               "cross_validate": True, "diagnose": True}
     assert again["verification_means"] == first["verification_means"]
     # the added effect: images, detection, camera calibration and poses from the cache; the fit anew
     assert effect["cached"]["measure"] == {"detect": n_chunks, "calibrate": 1, "poses": 1}

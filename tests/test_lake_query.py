@@ -188,5 +188,5 @@ def test_lake_partitions_shows_schema_and_fivecal_versions(lake_of_two):
     root, first = lake_of_two
     df = run_query(doc_query("What wrote each partition"), root)
     pige = df[df["table"] == "pige"].set_index("campaign_id")
-    assert pige.loc[SECOND, "fivecal_version"] == "test" and pige.loc[SECOND, "schema_version"] == 1
+    assert pige.loc[SECOND, "fivecal_version"] == "test" and pige.loc[SECOND, "schema_version"] == 2
     assert pige.loc[first, "num_rows"] == len(read_table("pige", root, first))

@@ -149,11 +149,24 @@ class CalibrationResult:
     def model(self) -> ErrorModel:
         return self.pige.model
 
-    def pige_table(self) -> pd.DataFrame:
-        """The ``pige`` lake table (µm / arcsec): value, uncertainty, identifiable, truth."""
+    def pige_table(self, propagated=None) -> pd.DataFrame:
+        """The ``pige`` lake table (µm / arcsec): value, standard uncertainty, identifiable, truth.
+
+        propagated: a :class:`tasks.identification.uncertainty.PropagatedUncertainty` of this
+        result; ``uncertainty`` is then its combined value (camera self-calibration and pose noise
+        through the PDGE extraction), with the parts in ``uncertainty_fit`` (the LM's),
+        ``uncertainty_noise`` and ``uncertainty_camera``. Without it ``uncertainty`` is the LM's."""
         specs, fit = self.pige.specs, self.pige.fit
+        scale = np.array([s.scale for s in specs])
         value = np.where(fit.identifiable, self.pige.values_file_units(), np.nan)
-        unc = self.pige.uncertainties_file_units()
+        unc_fit = self.pige.uncertainties_file_units()
+        nan = np.full(len(specs), np.nan)
+        if propagated is None:
+            unc, unc_noise, unc_camera = unc_fit, nan, nan
+        else:
+            unc = np.where(fit.identifiable, propagated.combined / scale, np.nan)
+            unc_noise = np.where(fit.identifiable, propagated.noise / scale, np.nan)
+            unc_camera = np.where(fit.identifiable, propagated.camera / scale, np.nan)
         rows = []
         # the truth in the fit's gauge, by name: a fit with added effects has parameters the truth's lacks
         truth_by_name = (dict(zip([t.name for t in self.truth_pige.specs], self.truth_pige.values_file_units(),
@@ -165,8 +178,9 @@ class CalibrationResult:
                 nominal = self.truth.pige.get(s.name, 0.0) / s.scale
             note = "" if fit.identifiable[i] else "unidentifiable from these poses (see the identifiability section)"
             rows.append({"name": s.name, "kind": s.kind, "joint": s.target, "unit": s.unit, "value": value[i],
-                         "uncertainty": unc[i], "identifiable": bool(fit.identifiable[i]), "note": note,
-                         "truth": truth_gauge[i], "truth_nominal": nominal})
+                         "uncertainty": unc[i], "uncertainty_fit": unc_fit[i], "uncertainty_noise": unc_noise[i],
+                         "uncertainty_camera": unc_camera[i], "identifiable": bool(fit.identifiable[i]),
+                         "note": note, "truth": truth_gauge[i], "truth_nominal": nominal})
         return pd.DataFrame(rows)
 
 
@@ -176,7 +190,9 @@ ALTERNATION_CONVERGED = 0.1  # stop when no parameter moves by more than this ma
 
 def alternate(machine: Machine, base: ErrorModel, measurements: Measurements, poses: Measurements,
               specs: list[ParamSpec] | None = None, truth: ErrorModel | None = None,
-              rounds: int = ALTERNATION_ROUNDS) -> tuple[PdgeResult, PigeFit, ErrorModel]:
+              rounds: int = ALTERNATION_ROUNDS,
+              start: tuple[ErrorModel, np.ndarray] | None = None,
+              smoothing: dict[str, np.ndarray] | None = None) -> tuple[PdgeResult, PigeFit, ErrorModel]:
     """PDGE extraction (eqs. 13–19) and the fit of the constant parameters (eq. 22), alternated.
 
     The extraction of an axis' PDGE reads everything else from the current model: without the
@@ -184,10 +200,14 @@ def alternate(machine: Machine, base: ErrorModel, measurements: Measurements, po
     e.g. from a principal-point error, turns with C and would become a once-per-turn PDGE of C).
     So: extract with the model, fit the constants with the profiles fixed, extract again with the
     fitted constants, until no parameter moves by more than ALTERNATION_CONVERGED of its
-    uncertainty (usually 3–5 rounds). Returns (PDGEs, fit, the model the PDGEs were extracted with)."""
-    extraction, x = base, None
+    uncertainty (usually 3–5 rounds). Returns (PDGEs, fit, the model the PDGEs were extracted with).
+
+    start: (extraction model, parameter values) of an earlier solution to begin from instead of
+    ``base`` and zeros: a re-fit of slightly changed measurements then converges in a round or two.
+    smoothing: the PDGE smoothers' roughness to hold ({axis: (6,)}, :class:`PdgeResult`); default GCV."""
+    extraction, x = (base, None) if start is None else start
     for _ in range(rounds):
-        pdge = extract_pdges(machine, extraction, measurements, truth)
+        pdge = extract_pdges(machine, extraction, measurements, truth, smoothing)
         with_pdge = replace(base, pdge={**base.pdge, **pdge.profiles})
         fit = identify_pige(machine, with_pdge, poses, specs, x0=x)
         moved = np.abs(fit.fit.x - (0.0 if x is None else x)) / np.where(fit.fit.identifiable, fit.fit.uncertainty,

@@ -212,7 +212,12 @@ def pige_section(data: ReportData) -> str:
     if data.pige.empty:
         parts.append(head + NOT_AVAILABLE)
     else:
+        propagated = "uncertainty_camera" in data.pige and data.pige["uncertainty_camera"].notna().any()
         parts.append(head + "Estimates with their standard uncertainty (k = 1)"
+                     + (", u = √(u noise² + u camera²): u noise carries the pose noise through the PDGE "
+                        "extraction and the fit (bootstrap), u camera the error of the cameras' self-calibrated "
+                        "intrinsics, common to every pose; u fit is the Levenberg–Marquardt covariance alone, "
+                        "which holds the PDGE profiles and the intrinsics exact" if propagated else "")
                      + ("; truth in the identification's gauge and the simulator's raw PIGE; abs(est − truth)/u "
                         "should be below 2 for about 95 % of the parameters." if data.simulated else ".")
                      + "\n\n" + T.format_pige(data.pige, data.simulated))
@@ -257,8 +262,11 @@ def before_after_section(data: ReportData, ba: pd.DataFrame, sink: _FigureSink) 
                       "Fig. 13 — position and orientation error before and after calibration"),
              "### Before/after statistics beside the seed\n\nmean/max/std over the validation poses (std with "
              "ddof = 1); improvement = 1 − after/before of the means"
-             + ("; noise floor = mean expected error norm from measurement noise alone." if
-                ba[["noise_floor_before", "noise_floor_after"]].notna().any().any() else ".")
+             + ("; noise floor = mean expected error norm from measurement noise alone" if
+                ba[["noise_floor_before", "noise_floor_after"]].notna().any().any() else "")
+             + ("; model uncertainty after = mean expected tip error after compensation from the identified "
+                "model's uncertainty alone (the PIGE table's u): how far compensation can be trusted to place the "
+                "tip" if ba["model_uncertainty_after"].notna().any() else "") + "."
              + "\n\n" + T.format_before_after(ba),
              T.seed_rate_note()]
     if data.simulated and not (vt := T.vbm_vs_truth(data.verification)).empty:

@@ -36,7 +36,7 @@ ROTATION = ("ex_arcsec", "ey_arcsec", "ez_arcsec")
 DIRECTIONS = ("dx_um", "dy_um", "dz_um", "rx_arcsec", "ry_arcsec", "rz_arcsec")
 BEFORE_AFTER_COLUMNS = ("source", "quantity", "unit", "statistic", "n_before", "n_after", "before", "after",
                         "improvement_pct", "seed_before", "seed_after", "seed_improvement_pct",
-                        "noise_floor_before", "noise_floor_after")
+                        "noise_floor_before", "noise_floor_after", "model_uncertainty_after")
 
 
 # --------------------------------------------------------------------------------------------
@@ -157,7 +157,9 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
     improvement_pct = 100·(1 − after/before) on the mean rows only (NaN on max/std rows),
     seed_before/seed_after (SEED_BEFORE/SEED_AFTER, same unit), seed_improvement_pct (the seed's
     published 96.1 / 67.4 % on the mean rows), noise_floor_before/after (mean over the poses of the
-    expected error norm from measurement noise alone; on the VBM mean rows only, NaN when not given).
+    expected error norm from measurement noise alone; on the VBM mean rows only, NaN when not given),
+    model_uncertainty_after (mean expected error norm after compensation from the identified model's
+    uncertainty; on the mean rows, NaN when not given).
     """
     rows = []
     present = set(verification["source"].astype(str)) if "source" in verification.columns else set()
@@ -167,6 +169,7 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
             stats = {p: _stats(column(f, col)) for p, f in phases.items()}
             floor = {p: _stats(column(f, f"noise_floor_{col}"))["mean"] if source == "vbm" else np.nan
                      for p, f in phases.items()}
+            expected = _stats(column(phases["after"], f"model_uncertainty_{col}"))["mean"]
             for stat in STATISTICS:
                 key = f"{quantity}_{stat}_{unit}"
                 mean_row = stat == "mean"
@@ -179,6 +182,7 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
                     "seed_improvement_pct": SEED_IMPROVEMENT_PCT[quantity] if mean_row else np.nan,
                     "noise_floor_before": floor["before"] if mean_row else np.nan,
                     "noise_floor_after": floor["after"] if mean_row else np.nan,
+                    "model_uncertainty_after": expected if mean_row else np.nan,
                 })
     return pd.DataFrame(rows, columns=list(BEFORE_AFTER_COLUMNS))
 
@@ -190,6 +194,9 @@ def format_before_after(table: pd.DataFrame) -> str:
                "Seed before", "Seed after", "Seed improvement (%)"]
     if floors:
         headers += ["Noise floor before", "Noise floor after"]
+    expected = bool(table["model_uncertainty_after"].notna().any())
+    if expected:
+        headers += ["Model uncertainty after"]
     rows = []
     for r in table.itertuples(index=False):
         row = [SOURCE_LABEL.get(r.source, r.source), f"{r.quantity} ({UNIT_LABEL[r.unit]})", r.statistic,
@@ -198,6 +205,8 @@ def format_before_after(table: pd.DataFrame) -> str:
                fmt(r.seed_improvement_pct, 1)]
         if floors:
             row += [fmt_unit(r.noise_floor_before, r.unit), fmt_unit(r.noise_floor_after, r.unit)]
+        if expected:
+            row += [fmt_unit(r.model_uncertainty_after, r.unit)]
         rows.append(row)
     return md_table(headers, rows, "lll" + "r" * (len(headers) - 3))
 
@@ -462,11 +471,16 @@ def _like_estimate(v, decimals: int | None) -> str:
     return fmt_g(v) if decimals is None else fmt(v, decimals)
 
 
+UNCERTAINTY_PARTS = {"uncertainty_fit": "u fit", "uncertainty_noise": "u noise", "uncertainty_camera": "u camera"}
+"""The parts of a propagated uncertainty (the pige table's columns) and their Table 6 headers."""
+
+
 def format_pige(pige: pd.DataFrame, simulated: bool) -> str:
     """Table 6 as Markdown: estimate ± standard uncertainty, unit, truth (identification gauge and
     the simulator's raw PIGE) and |value − truth|/u when simulated. Unidentifiable parameters show
     the word "unidentifiable" in place of every estimate-derived cell, never a number."""
-    headers = ["Parameter", "Kind", "Joint", "Estimate ± u", "Unit"]
+    parts = [c for c in UNCERTAINTY_PARTS if c in pige.columns and pige[c].notna().any()]
+    headers = ["Parameter", "Kind", "Joint", "Estimate ± u", "Unit", *(UNCERTAINTY_PARTS[c] for c in parts)]
     if simulated:
         headers += ["Truth (identification gauge)", "Truth (simulator PIGE)", "abs(est − truth)/u"]
     headers += ["Note"]
@@ -476,14 +490,15 @@ def format_pige(pige: pd.DataFrame, simulated: bool) -> str:
         ident = _identifiable(r)
         row = [r.get("name", ""), r.get("kind", ""), r.get("joint", ""),
                fmt_pm(r["value"], r.get("uncertainty")) if ident else UNIDENTIFIABLE, UNIT_LABEL.get(unit, unit)]
+        d = u_decimals(r.get("uncertainty")) if ident else None
+        row += [_like_estimate(r.get(c), u_decimals(r.get(c))) if ident else DASH for c in parts]
         if simulated:
-            d = u_decimals(r.get("uncertainty")) if ident else None
             row += [_like_estimate(r.get("truth"), d), _like_estimate(r.get("truth_nominal"), d),
                     fmt(deviation_over_u(r), 2) if ident else DASH]
         note = r.get("note", "")
         row += [DASH if is_missing(note) or note == "" else note]
         rows.append(row)
-    return md_table(headers, rows, "llll" + "l" + ("rrr" if simulated else "") + "l")
+    return md_table(headers, rows, "llll" + "l" + "r" * len(parts) + ("rrr" if simulated else "") + "l")
 
 
 def pige_coverage(pige: pd.DataFrame) -> dict[str, float]:

@@ -25,6 +25,7 @@ bench: $(STAMP)
 	$(VENV)/bin/python bench/bench_kinematics.py
 	$(VENV)/bin/python bench/bench_render.py
 	$(VENV)/bin/python bench/bench_identification.py
+	$(VENV)/bin/python bench/bench_smoothing.py
 	$(VENV)/bin/python bench/bench_formulations.py
 	$(VENV)/bin/python bench/bench_dask_ingest.py
 	$(VENV)/bin/python bench/bench_memory.py

@@ -67,7 +67,9 @@ def propagate_task(machine: Machine, measurements: Measurements, result: Calibra
                    draws: int = NOISE_DRAWS) -> PropagatedUncertainty | None:
     """What the camera self-calibration and the pose noise through the PDGE extraction add to the
     identified parameters' uncertainty (:mod:`tasks.identification.uncertainty`); None for fits with
-    added effects (their uncertainty stays the LM's)."""
+    added effects (their uncertainty stays the LM's). calibration: the ``camera_calibration`` table
+    (the intrinsics; its content keys the cache). dots, images: the lake tables the intrinsics'
+    covariance and the poses' sensitivities are computed from. plates: {camera: the plate it views}."""
     if result.model.effects:
         return None
     covs = intrinsics_covariances(dots, images, cameras, plates)

@@ -13,9 +13,9 @@ the PDGE profiles are extracted from the noise-free sweeps first (not timed).
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
+from timing import best_of
 
 from tasks import se3
 from tasks.campaign_plan import CampaignPlan, plan_campaign
@@ -34,15 +34,6 @@ from tasks.prototype_errors import load_prototype_errors
 
 GOAL_S = 2.0
 COV = np.diag([0.25e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])
-
-
-def best_of(fn, repeats: int) -> tuple[float, object]:
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def main() -> None:

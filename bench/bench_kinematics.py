@@ -9,9 +9,9 @@ Baseline, run side by side in this process: the same chain evaluated pose by pos
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
+from timing import best_of
 
 from tasks.campaign_plan import CampaignPlan, five_axis_poses
 from tasks.kinematics import forward
@@ -19,15 +19,6 @@ from tasks.machine import load_machine
 from tasks.prototype_errors import load_prototype_errors
 
 SEED_MS_PER_POSE = 0.088
-
-
-def best_of(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 def main() -> None:
@@ -46,8 +37,8 @@ def main() -> None:
         return [forward(machine, c, errors).tool_in_workpiece() for c in cmds]
 
     assert np.allclose(np.concatenate(pose_by_pose()), batched(), atol=1e-12)
-    t_batch = best_of(batched, args.repeats)
-    t_loop = best_of(pose_by_pose, max(3, args.repeats // 10))
+    t_batch, _ = best_of(batched, args.repeats)
+    t_loop, _ = best_of(pose_by_pose, max(3, args.repeats // 10))
     per_pose = 1e3 * t_batch / args.poses
     print(f"forward kinematics, {args.poses} poses, all PIGEs and PDGEs")
     print(f"  batched local PoE : {1e3 * t_batch:8.3f} ms total, {per_pose:.5f} ms/pose")

@@ -11,21 +11,12 @@ ratio and the largest relative difference of the fitted values.
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
+from timing import best_of
 
 from tasks.identification.smoothing import smooth
-
-
-def best_of(fn, repeats: int) -> tuple[float, np.ndarray]:
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def main() -> None:

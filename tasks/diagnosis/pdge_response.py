@@ -18,7 +18,7 @@ profile changes by ΔP_j = I_j G_j H_j A_j ΔE_j: this is how much of the effect
 swallows. A cyclic error whose period the sweep's steps resolve but the spline smooths keeps most
 of its signature; a linear or slowly varying one is swallowed whole.
 
-λ_jc is found as the extraction finds it (:func:`tasks.identification.smoothing.gcv_roughness`)
+λ_jc is found as the extraction finds it (:meth:`tasks.identification.smoothing.SplineBasis.gcv_roughness`)
 on the mean error motions of the extraction's model, so H_jc is the smoother the extraction used
 (tests/test_diagnosis.py checks the profiles it gives against the extraction's).
 """
@@ -32,7 +32,7 @@ import numpy as np
 from tasks.error_model import COMPONENT_SCALE, ErrorModel
 from tasks.identification.measurements import Measurements
 from tasks.identification.pdge_extraction import TabulatedProfile, line_error_signatures, measured_error_motions
-from tasks.identification.smoothing import MIN_POINTS, gcv_roughness, hat_matrix
+from tasks.identification.smoothing import MIN_POINTS, SplineBasis
 from tasks.machine import AXIS_ORDER, Machine
 
 
@@ -145,8 +145,9 @@ def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis
     if k >= MIN_POINTS:
         w = count / count.mean()  # the extraction's weights count/pooled, normalised: pooled cancels
         mean = average @ E
+        basis = SplineBasis.of(q, w)
         for c in range(6):
-            hat[c] = hat_matrix(q, w, gcv_roughness(q, mean[:, c], w))
+            hat[c] = basis.hat(basis.gcv_roughness(mean[:, c]))
     gauge = gauge_operator(machine, axis, q)
     bias = smoothing_bias_covariance(hat, pooled_variance(E, inverse, k), count, gauge)
     return AxisResponse(axis, sweep, q, average, hat, gauge, smoothing_cov=bias, error_motions=E)

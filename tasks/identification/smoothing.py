@@ -18,11 +18,14 @@ Generalized Linear Models*, §2.1), B = W^-½ K W^-½ = U diag(d) Uᵀ gives
 
     H(λ) = W^-½ U diag(1 / (1 + λ d)) Uᵀ W^½,   tr H(λ) = Σ 1 / (1 + λ dᵢ),
 
-so each evaluation is O(n), and the fitted values are H(λ) y. The result is scipy's up to the
+so each evaluation is O(n), and the fitted values are H(λ) y (:class:`SplineBasis`, built once
+per sweep). The result is scipy's up to the
 tolerance of the λ search (tests/test_identification.py compares them).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -47,31 +50,41 @@ def penalty_matrix(x: np.ndarray) -> np.ndarray:
     return Q @ np.linalg.solve(R, Q.T)
 
 
-def hat_matrix(x: np.ndarray, w: np.ndarray, lam: float) -> np.ndarray:
-    """(n, n) hat matrix of the smoothing spline through x at roughness ``lam``: fitted values
-    H @ y = (W + λ K)⁻¹ W y. w: (n,) weights (normalised to mean 1, as :func:`smooth` does)."""
-    W = np.diag(w)
-    return np.linalg.solve(W + lam * penalty_matrix(x), W)
+@dataclass(frozen=True)
+class SplineBasis:
+    """The Demmler–Reinsch basis of the smoothing spline through x (n,) with weights w (n,):
+    sw = √w, and d (n,) ≥ 0, U (n, n) with W^-½ K W^-½ = U diag(d) Uᵀ. Built once per abscissas
+    and weights, it gives the hat matrix and the GCV choice of every column without a solve."""
 
+    sw: np.ndarray
+    d: np.ndarray
+    U: np.ndarray
 
-def gcv_roughness(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
-    """λ minimising GCV(λ) for the values y (n,) with weights w (n,), over (0, n) by scipy's
-    bounded search. Each evaluation is O(n) in the Demmler–Reinsch basis (module docstring)."""
-    n = x.size
-    sw = np.sqrt(w)
-    d, U = np.linalg.eigh(penalty_matrix(x) / np.outer(sw, sw))
-    d = np.clip(d, 0.0, None)  # the two zero eigenvalues (straight lines) come out at ±rounding
-    z = U.T @ (sw * y / (np.max(np.abs(y)) or 1.0))  # GCV's minimiser is scale free in y
+    @classmethod
+    def of(cls, x: np.ndarray, w: np.ndarray) -> SplineBasis:
+        sw = np.sqrt(np.asarray(w, dtype=float))
+        d, U = np.linalg.eigh(penalty_matrix(x) / np.outer(sw, sw))
+        return cls(sw, np.clip(d, 0.0, None), U)  # the two zero eigenvalues come out at ±rounding
 
-    def gcv(lam: float) -> float:
-        shrink = lam * d / (1.0 + lam * d)  # 1 − the eigenvalues of H
-        res = (U @ (shrink * z)) / sw
-        return float(res @ res / n / (1.0 - np.sum(1.0 / (1.0 + lam * d)) / n) ** 2)
+    def hat(self, lam: float) -> np.ndarray:
+        """(n, n) hat matrix at roughness ``lam``: fitted values H @ y = (W + λ K)⁻¹ W y."""
+        return (self.U / self.sw[:, None]) * (1.0 / (1.0 + lam * self.d)) @ (self.U.T * self.sw)
 
-    est = minimize_scalar(gcv, bounds=(0, n), method="bounded")
-    if not est.success:
-        raise ValueError(f"no minimum of the GCV function: {est.message}")
-    return float(est.x)
+    def gcv_roughness(self, y: np.ndarray) -> float:
+        """λ minimising GCV(λ) for the values y (n,), over (0, n) by scipy's bounded search; each
+        evaluation is O(n) (module docstring)."""
+        n, d, U, sw = self.d.size, self.d, self.U, self.sw
+        z = U.T @ (sw * y / (np.max(np.abs(y)) or 1.0))  # GCV's minimiser is scale free in y
+
+        def gcv(lam: float) -> float:
+            shrink = lam * d / (1.0 + lam * d)  # 1 − the eigenvalues of H
+            res = (U @ (shrink * z)) / sw
+            return float(res @ res / n / (1.0 - np.sum(1.0 / (1.0 + lam * d)) / n) ** 2)
+
+        est = minimize_scalar(gcv, bounds=(0, n), method="bounded")
+        if not est.success:
+            raise ValueError(f"no minimum of the GCV function: {est.message}")
+        return float(est.x)
 
 
 def smooth(x: np.ndarray, Y: np.ndarray, w: np.ndarray, lam: np.ndarray | None = None
@@ -84,8 +97,8 @@ def smooth(x: np.ndarray, Y: np.ndarray, w: np.ndarray, lam: np.ndarray | None =
     x, Y = np.asarray(x, float), np.asarray(Y, float)
     if x.size < MIN_POINTS:
         return Y.copy(), np.full(Y.shape[1], np.nan)
-    w = np.asarray(w, float) / np.mean(w)
+    basis = SplineBasis.of(x, np.asarray(w, float) / np.mean(w))
     if lam is None:
-        lam = np.array([gcv_roughness(x, Y[:, k], w) for k in range(Y.shape[1])])
-    fitted = np.column_stack([hat_matrix(x, w, float(lam[k])) @ Y[:, k] for k in range(Y.shape[1])])
+        lam = np.array([basis.gcv_roughness(Y[:, k]) for k in range(Y.shape[1])])
+    fitted = np.column_stack([basis.hat(float(lam[k])) @ Y[:, k] for k in range(Y.shape[1])])
     return fitted, lam

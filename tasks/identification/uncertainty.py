@@ -23,7 +23,7 @@ A re-fit is the alternation of :func:`~tasks.identification.pige_identification.
 linearised about the identified solution: it starts there, holds the PDGE smoothers' roughness
 (:mod:`tasks.identification.smoothing`) and replaces each constant fit by a Gauss–Newton step with
 the fit's own Jacobian (:func:`_linearised_refit`), so it measures how this estimator moves with
-its inputs, at about 0.7 s a re-fit on the demo. tests/test_identification.py checks its camera
+its inputs (the 33 re-fits of the demo take about 24 s on 2 cores). tests/test_identification.py checks its camera
 part against re-running the whole calibration. Units: the parameters' internal units (mm, rad).
 """
 
@@ -83,9 +83,9 @@ LINEARISED_ROUNDS = 10
 profile) shrinks by about 0.8 per round, so 10 rounds carry about 90 % of a perturbation."""
 
 
-def _linearised_refit(machine: Machine, result: CalibrationResult,
+def _linearised_refit(machine: Machine, result: CalibrationResult, measurements: Measurements,
                       rounds: int = LINEARISED_ROUNDS) -> Callable[[Measurements], tuple]:
-    """measurements -> (parameter values (P,), model): the alternation of
+    """``measurements`` moved -> (parameter values (P,), model): the alternation of
     :func:`tasks.identification.pige_identification.alternate` from ``result``'s solution, with the
     PDGE smoothers held and each constant fit replaced by a Gauss–Newton step with the fit's own
     Jacobian in its identifiable subspace (the perturbations are small: a linear response)."""
@@ -96,9 +96,11 @@ def _linearised_refit(machine: Machine, result: CalibrationResult,
     V = Vt[:k].T
     gain = steps[:, None] * (V @ np.diag(1.0 / s[:k] ** 2) @ V.T @ (fit.jacobian * steps).T)  # (P, M)
 
+    # a perturbation moves the poses, not their covariances: one whitening serves every re-fit
+    W = whitening(measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA).cov)
+
     def refit(m: Measurements) -> tuple:
         poses = m.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
-        W = whitening(poses.cov)
         x, extraction = fit.x, result.extraction_model or ErrorModel()
         for _ in range(rounds):
             profiles = extract_pdges(machine, extraction, m, smoothing=result.pdge.smoothing).profiles
@@ -126,7 +128,7 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
     (:func:`tasks.intrinsics_uncertainty.pose_sensitivities`). intrinsics_cov: {camera: (8, 8)};
     a camera without one (or with a NaN one) contributes nothing. draws: bootstrap draws (0: none).
     Deterministic for a given seed. workers: re-fits run side by side in threads."""
-    refit = _linearised_refit(machine, result)
+    refit = _linearised_refit(machine, result, measurements)
     # the response is measured against the same iteration on the unperturbed measurements: what is
     # left of the alternation's own convergence cancels
     x0, _ = refit(measurements)

@@ -49,15 +49,14 @@ def detection_flow():
 
     from tasks.ingest import load_campaign_metadata
     from tasks.results_lake import read_table
-    from tasks.vision import detection_chunks, expected_rotations, plates_by_camera
+    from tasks.vision import campaign_plates, detection_chunks, with_detection_inputs
     from tasks.vision_steps import detect_chunk
 
     @flow(name="bench-detect")
     def detect_all(campaign: str, results_root: str, chunk_size: int) -> dict:
         metadata = load_campaign_metadata(campaign)
-        images = read_table("images", Path(results_root), metadata["campaign_id"])
-        images["rotation_deg"] = expected_rotations(metadata, images)
-        plates = plates_by_camera(metadata)
+        images = with_detection_inputs(metadata, read_table("images", Path(results_root), metadata["campaign_id"]))
+        plates = campaign_plates(metadata)
         futures = [detect_chunk.submit(Path(campaign), rows, plates, "rrht")
                    for rows in detection_chunks(images, chunk_size)]
         found = sum(int((f.result()[1]["detection_status"] == "ok").sum()) for f in futures)

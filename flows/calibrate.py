@@ -41,6 +41,7 @@ from tasks.identification.measurements import assemble_measurements
 from tasks.identification.pige_identification import null_space_sentences
 from tasks.identification.uncertainty import expected_tip_errors
 from tasks.ingest import load_campaign_metadata
+from tasks.machine import CALIBRATION_STAGE
 from tasks.model_ladder import append_step, ladder_step
 from tasks.report import ReportData
 from tasks.report.residual_figures import residual_report
@@ -54,7 +55,7 @@ from tasks.verification import (
     with_model_uncertainty,
 )
 from tasks.verification_capture import is_simulated
-from tasks.vision import content_key, expected_rotations, nominal_machine, plates_by_camera
+from tasks.vision import campaign_plates, content_key, nominal_machine, with_detection_inputs
 from tasks.vision_steps import detect_chunk, poses
 
 VALIDATION_CAMERA = "camera1"
@@ -73,9 +74,8 @@ def _measure_capture(folder: Path, results_root: str | None, cameras: dict, dete
     ingest_campaign(str(folder), results_root)
     metadata = load_campaign_metadata(folder)
     root = None if results_root is None else Path(results_root)
-    images = read_table("images", root, metadata["campaign_id"])
-    images["rotation_deg"] = expected_rotations(metadata, images)
-    plates = plates_by_camera(metadata)
+    images = with_detection_inputs(metadata, read_table("images", root, metadata["campaign_id"]))
+    plates = campaign_plates(metadata)
     ok = images[images["status"] == "ok"]
     dots, detections = detect_chunk(folder, ok, plates, detector)
     table = poses(dots, detections, cameras, plates)
@@ -127,7 +127,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     dots = read_table("dots", root, campaign_id)
     logger.info("propagating the camera self-calibration and the pose noise into the parameters' uncertainty")
     prop_future = propagate_task.submit(machine, measurements, result, calibration, dots, images, cameras,
-                                        plates_of(machine))  # runs beside the compensation and the capture
+                                        plates_of(machine), plates_of(machine, CALIBRATION_STAGE))
+    # (it runs beside the compensation and the capture)
 
     validation = measurements.stage("validation", camera=VALIDATION_CAMERA)
     ids = validation.table.image_id.tolist()

@@ -14,7 +14,7 @@ import fivecal
 from flows.ingest import ingest_campaign
 from flows.runners import image_task_runner, subflow_task_runner
 from tasks.ingest import load_campaign_metadata
-from tasks.vision import content_key, detection_chunks, expected_rotations, plates_by_camera
+from tasks.vision import campaign_plates, content_key, detection_chunks, with_detection_inputs
 from tasks.vision_steps import calibrate, detect_chunk, poses, read_images, write_table
 
 CHUNK_SIZE = 32
@@ -33,9 +33,8 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     ingest_summary = ingest_campaign.with_options(task_runner=subflow_task_runner())(str(folder), results_root)
     metadata = load_campaign_metadata(folder)
     campaign_id = metadata["campaign_id"]
-    images = read_images(campaign_id, root)
-    images["rotation_deg"] = expected_rotations(metadata, images)
-    plates = plates_by_camera(metadata)
+    images = with_detection_inputs(metadata, read_images(campaign_id, root))
+    plates = campaign_plates(metadata)
 
     chunks = detection_chunks(images, chunk_size)
     logger.info(f"detecting dots ({detector}) in {sum(map(len, chunks))} images, {len(chunks)} chunks")
@@ -50,7 +49,7 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     cal_future = calibrate.submit(dots[dots["image_id"].isin(calibration_ids)], images, metadata)
     calibration, cameras = cal_future.result()
     cached["calibrate"] = int(cal_future.state.name == "Cached")
-    missing = sorted(set(plates) - set(cameras))
+    missing = sorted(set(metadata["views"]) - set(cameras))
     if missing:
         logger.warning(f"no calibrated intrinsics for {missing}: their images get no pose")
     pose_future = poses.submit(dots, detections, cameras, plates)

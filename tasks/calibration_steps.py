@@ -63,16 +63,17 @@ def identify_task(machine: Machine, measurements: Measurements, truth: ErrorMode
       cache_key_fn=lambda c, p: _key("uncertainty", p["result"].model.to_dict(), *_measurements_key(p["measurements"]),
                                      p["calibration"], p["machine"].source, p["draws"]))
 def propagate_task(machine: Machine, measurements: Measurements, result: CalibrationResult, calibration: pd.DataFrame,
-                   dots: pd.DataFrame, images: pd.DataFrame, cameras: dict, plates: dict,
+                   dots: pd.DataFrame, images: pd.DataFrame, cameras: dict, plates: dict, targets: dict,
                    draws: int = NOISE_DRAWS) -> PropagatedUncertainty | None:
     """What the camera self-calibration and the pose noise through the PDGE extraction add to the
     identified parameters' uncertainty (:mod:`tasks.identification.uncertainty`); None for fits with
     added effects (their uncertainty stays the LM's). calibration: the ``camera_calibration`` table
     (the intrinsics; its content keys the cache). dots, images: the lake tables the intrinsics'
-    covariance and the poses' sensitivities are computed from. plates: {camera: the plate it views}."""
+    covariance and the poses' sensitivities are computed from. plates: {camera: the plate it measures};
+    targets: {camera: the plate of its self-calibration views}."""
     if result.model.effects:
         return None
-    covs = intrinsics_covariances(dots, images, cameras, plates)
+    covs = intrinsics_covariances(dots, images, cameras, targets)
     sens = pose_sensitivities(dots, measurements.table["image_id"].tolist(), measurements.T, cameras, plates,
                               measurements.table["camera"].tolist())
     return propagate_uncertainty(machine, result, measurements, sens, covs, draws=draws)

@@ -450,13 +450,13 @@ def simulated_trials(camera: str, sigma_px: float, seed: int, plan=None, machine
     campaign plan's fixture poses, true projected dot centres, Gaussian pixel noise σ (seeded).
     For tests and the measurement in docs/camera-calibration.md."""
     from tasks.campaign_plan import CampaignPlan, plan_campaign
-    from tasks.machine import load_machine
+    from tasks.machine import CALIBRATION_STAGE, load_machine
     from tasks.render import true_dot_centres
 
     machine = machine or load_machine("prototype")
     poses, fixture = plan_campaign(machine, plan or CampaignPlan(), seed)
     cam = machine.cameras[camera]
-    plate = machine.plates[machine.views[camera]]
+    plate = machine.plates[machine.plate_seen(camera, CALIBRATION_STAGE)]
     rng = np.random.default_rng([seed, 101, list(machine.cameras).index(camera)])
     obj = plate.dot_centres_mm()
     out: dict[str, tuple] = {}

@@ -2,9 +2,11 @@
 
 Stages:
 - ``camera_calibration``: per camera, ``trials`` independent trials of ``images_per_trial``
-  views of its plate held on a tilting fixture (the plate pose relative to the camera is free;
-  the machine stands still). Plate b only turns in its own plane on the A axis, so the fixture
-  is needed to give the tilted views that camera self-calibration requires.
+  views of its calibration target (``Machine.plate_seen``) held on a tilting fixture (the
+  target's pose relative to the camera is free; the machine stands still). Plate b only turns in
+  its own plane on the A axis, so the fixture is needed to give the tilted views that camera
+  self-calibration requires, and a target that spans more of the field than the measured plates
+  fixes focal length and principal point about three times better.
 - ``pdge``: per axis, ``positions`` positions × ``repeats`` repeats, centred on home so that the
   sweep includes zero: X/Y in 1 mm and A in 1° steps as in the seed; Z in 0.2 mm steps (the
   seed's 0.1 mm spans only ±2.5 mm, less than the five-axis poses use) and C over its whole
@@ -30,7 +32,7 @@ import pandas as pd
 
 from tasks import se3
 from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER, Machine
+from tasks.machine import AXIS_ORDER, CALIBRATION_STAGE, Machine
 
 STAGES = ("camera_calibration", "pdge", "pige", "validation")
 SWEEP_STEP = {"X": 1.0, "Y": 1.0, "Z": 0.2, "A": 1.0}  # mm or deg per step; C spans its stroke
@@ -120,13 +122,13 @@ def five_axis_poses(machine: Machine, n: int, plan: CampaignPlan, rng: np.random
 
 
 def fixture_poses(machine: Machine, camera: str, n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, 4, 4) plate poses in the camera frame for self-calibration views.
+    """(n, 4, 4) poses of the camera's self-calibration target in the camera frame (mm).
 
     Tilts up to 35° about a random in-plane axis, any in-plane rotation, distance within ±8 % of
     focus, lateral position spread over the field of view while keeping the plate inside it.
     """
     cam = machine.cameras[camera]
-    plate = machine.plates[machine.views[camera]]
+    plate = machine.plates[machine.plate_seen(camera, CALIBRATION_STAGE)]
     d = cam.focus_distance_mm * rng.uniform(0.92, 1.08, n)
     tilt = np.deg2rad(rng.uniform(10, 35, n))
     tilt_dir = rng.uniform(0, 2 * np.pi, n)
@@ -162,7 +164,7 @@ def plan_campaign(machine: Machine, plan: CampaignPlan, seed: int) -> tuple[pd.D
         fixture.extend(poses)
         trial = np.repeat(np.arange(plan.calibration_trials), plan.images_per_trial)
         parts.append(pd.DataFrame({
-            "camera": camera, "stage": "camera_calibration",
+            "camera": camera, "stage": CALIBRATION_STAGE,
             "group": [f"trial{t:02d}" for t in trial], "repeat": 0,
             **{a: 0.0 for a in AXIS_ORDER},
         }))

@@ -58,8 +58,10 @@ import pandas as pd
 
 from tasks.camera_model import CameraModel
 from tasks.kinematics import position_orientation_error
+from tasks.machine import CALIBRATION_STAGE
 from tasks.plate import DotPlate
 from tasks.poses import RAD_TO_ARCSEC, estimate_pose
+from tasks.vision import campaign_plates, plate_names, plates_by_camera
 
 CODE_VERSION = "detector-comparison-1"
 TABLE_NAME = "detector_comparison"
@@ -100,12 +102,6 @@ true intrinsics of each exposure (the detector's share, without the calibration'
 
 def _metadata(folder: Path) -> dict:
     return json.loads((folder / "campaign.json").read_text(encoding="utf-8"))
-
-
-def plates_by_camera(metadata: dict) -> dict[str, DotPlate]:
-    """{camera: the DotPlate it views} from campaign.json (``plates`` and ``views``)."""
-    return {cam: DotPlate.from_dict({**metadata["plates"][plate], "name": plate})
-            for cam, plate in metadata["views"].items()}
 
 
 def sample_images(manifest: pd.DataFrame, max_images_per_camera: int = 20) -> list[str]:
@@ -230,8 +226,9 @@ def detector_runs(campaign_folder: str | Path, cameras: Mapping[str, CameraModel
         raise ValueError(f"unknown detector(s) {unknown}; choose from {sorted(DETECTORS)}")
     folder = Path(campaign_folder)
     meta = _metadata(folder)
-    plates = plates_by_camera(meta)
+    plates = campaign_plates(meta)
     manifest = pd.read_csv(folder / "manifest.csv", dtype={"image_id": str})
+    manifest["plate"] = plate_names(meta, manifest)
     ids = list(images) if images is not None else sample_images(manifest, max_images_per_camera)
     rows_by_id = manifest.set_index("image_id")
     missing = [i for i in ids if i not in rows_by_id.index]
@@ -241,7 +238,7 @@ def detector_runs(campaign_folder: str | Path, cameras: Mapping[str, CameraModel
     truth_uv: dict[str, np.ndarray] = {}
     if t_dots is not None:
         for image_id, g in t_dots[t_dots["image_id"].isin(ids)].groupby("image_id"):
-            plate = plates[rows_by_id.loc[image_id, "camera"]]
+            plate = plates[rows_by_id.loc[image_id, "plate"]]
             uv = np.full((plate.rows * plate.cols, 2), np.nan)
             uv[g["row"].to_numpy() * plate.cols + g["col"].to_numpy()] = g[["u_px", "v_px"]].to_numpy(float)
             truth_uv[image_id] = uv
@@ -254,15 +251,14 @@ def detector_runs(campaign_folder: str | Path, cameras: Mapping[str, CameraModel
     if warm_up:
         first = next((i for i in ids if pixels[i] is not None), None)
         if first is not None:
-            cam = rows_by_id.loc[first, "camera"]
             for d in detectors:
-                _time_detector(pixels[first], plates[cam], d, None, 1)
+                _time_detector(pixels[first], plates[rows_by_id.loc[first, "plate"]], d, None, 1)
 
-    labellings = {cam: symmetric_labellings(p) for cam, p in plates.items()}
+    labellings = {name: symmetric_labellings(p) for name, p in plates.items()}
     out: list[dict[str, Any]] = []
     for k, image_id in enumerate(ids):
         m = rows_by_id.loc[image_id]
-        cam, plate = str(m["camera"]), plates[str(m["camera"])]
+        cam, plate = str(m["camera"]), plates[str(m["plate"])]
         truth = truth_uv.get(image_id)
         T_true = None
         in_view = np.nan
@@ -298,7 +294,7 @@ def detector_runs(campaign_folder: str | Path, cameras: Mapping[str, CameraModel
             if det is not None and det.ok:
                 uv = np.asarray(det.centres, dtype=float)
                 if truth is not None:
-                    uv, row["relabelled"] = match_labels(uv, truth, labellings[cam])
+                    uv, row["relabelled"] = match_labels(uv, truth, labellings[str(m["plate"])])
                     err = np.linalg.norm(uv - truth, axis=1)
                     err = err[np.isfinite(err)]
                     row["n_dots"] = int(err.size)
@@ -458,13 +454,13 @@ def self_calibrate(campaign_folder: str | Path, cameras: Sequence[str] | None = 
 
     folder = Path(campaign_folder)
     meta = _metadata(folder)
-    plates = plates_by_camera(meta)
+    plates = plates_by_camera(meta, CALIBRATION_STAGE)
     manifest = pd.read_csv(folder / "manifest.csv", dtype={"image_id": str})
     models: dict[str, CameraModel] = {}
     sources: dict[str, str] = {}
     for name in cameras or list(meta["cameras"]):
         nominal = _nominal(meta, name)
-        sel = manifest[(manifest["camera"] == name) & (manifest["stage"] == "camera_calibration")]
+        sel = manifest[(manifest["camera"] == name) & (manifest["stage"] == CALIBRATION_STAGE)]
         if len(sel) > max_images_per_camera:
             sel = sel.iloc[np.unique(np.round(np.linspace(0, len(sel) - 1, max_images_per_camera)).astype(int))]
         obj, img, ids = [], [], []

@@ -14,6 +14,7 @@ in that link's frame. Units: mm, radians inside; degrees only in files and comma
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -26,6 +27,7 @@ from tasks.plate import DotPlate
 
 MACHINES_DIR = Path(__file__).parent / "machines"
 AXIS_ORDER = ("X", "Y", "Z", "A", "C")  # column order of command arrays everywhere
+CALIBRATION_STAGE = "camera_calibration"  # the campaign stage of the self-calibration views
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,15 @@ class Attachment:
     pose_in_link: np.ndarray = field(compare=False)
 
 
+def plate_seen(views: Mapping[str, str], calibration_targets: Mapping[str, str], camera: str, stage: str) -> str:
+    """Name of the plate ``camera`` sees in an image of campaign ``stage``: its self-calibration
+    target (``calibration_targets``) in the ``camera_calibration`` stage, the plate it measures
+    (``views``) in every other stage and when it has no target of its own."""
+    if stage == CALIBRATION_STAGE:
+        return calibration_targets.get(camera, views[camera])
+    return views[camera]
+
+
 @dataclass(frozen=True)
 class Machine:
     """The whole machine description. See the module docstring for frames and units."""
@@ -79,6 +90,11 @@ class Machine:
     workpiece: str = "plate_a"
     notes: tuple[str, ...] = ()
     source: dict = field(default_factory=dict, compare=False, repr=False)
+    calibration_targets: dict[str, str] = field(default_factory=dict)  # camera -> plate it self-calibrates on
+
+    def plate_seen(self, camera: str, stage: str) -> str:
+        """Name of the plate ``camera`` sees in an image of campaign ``stage`` (:func:`plate_seen`)."""
+        return plate_seen(self.views, self.calibration_targets, camera, stage)
 
     def chain_of(self, axis: str) -> tuple[str, ...]:
         for chain in (self.tool_chain, self.workpiece_chain):
@@ -167,6 +183,7 @@ def machine_from_dict(d: dict) -> Machine:
         workpiece=d.get("workpiece", "plate_a"),
         notes=tuple(d.get("notes", ())),
         source=d,
+        calibration_targets=dict(d.get("calibration_targets", {})),
     )
 
 

@@ -143,9 +143,10 @@ def pose_residual_table(machine: Machine, model: ErrorModel, meas: Measurements,
     return out[list(POSE_RESIDUAL_COLUMNS)]
 
 
-def plates_of(machine: Machine) -> dict[str, DotPlate]:
-    """{camera: the plate it views} from the machine description."""
-    return {cam: machine.plates[plate] for cam, plate in machine.views.items()}
+def plates_of(machine: Machine, stage: str = "pige") -> dict[str, DotPlate]:
+    """{camera: the plate it sees in images of ``stage``} from the machine description
+    (``Machine.plate_seen``: the measured plate, or in camera_calibration its target)."""
+    return {cam: machine.plates[machine.plate_seen(cam, stage)] for cam in machine.views}
 
 
 def dot_residual_table(dots: pd.DataFrame, meas: Measurements, cameras: Mapping[str, CameraModel],

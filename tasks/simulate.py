@@ -48,6 +48,7 @@ class CampaignTruth:
     T_cam_plate: (N, 4, 4) mm. focal_scale: (N,). centres_px: (N, rows*cols, 2) true projected
     dot centres. in_view: (N,) whole plate inside the image. extra_distortion: {camera: dict|None}.
     cameras: {camera: CameraModel} true intrinsics at the campaign's image size.
+    plate_names: (N,) the plate each image shows (``Machine.plate_seen``).
     """
 
     T_cam_plate: np.ndarray
@@ -56,6 +57,7 @@ class CampaignTruth:
     in_view: np.ndarray
     extra_distortion: dict[str, dict | None]
     cameras: dict[str, CameraModel]
+    plate_names: list[str]
 
 
 def camera_for_image(camera: CameraModel, focal_scale: float) -> CameraModel:
@@ -106,14 +108,15 @@ def simulate_truth(machine: Machine, errors: ErrorModel, plan: pd.DataFrame,
         extra[name] = ch["extra_distortion"]
     for row, pose in fixture.items():
         T[row] = pose
+    plate_names = [machine.plate_seen(c, s) for c, s in zip(camera_col, plan["stage"], strict=True)]
     centres, in_view = [], np.zeros(n, dtype=bool)
     for i in range(n):
         name = camera_col[i]
         cam = camera_for_image(cameras[name], focal[i])
-        plate = machine.plates[machine.views[name]]
+        plate = machine.plates[plate_names[i]]
         centres.append(true_dot_centres(cam, plate, T[i], extra_distortion=_extra(extra[name])))
         in_view[i] = plate_in_view(cam, plate, T[i], extra_distortion=_extra(extra[name]))
-    return CampaignTruth(T, focal, centres, in_view, extra, cameras)
+    return CampaignTruth(T, focal, centres, in_view, extra, cameras, plate_names)
 
 
 def _extra(d: dict | None):
@@ -133,7 +136,7 @@ def imaging_conditions(seed: int, index: int) -> ImagingConditions:
 def render_image(machine: Machine, truth: CampaignTruth, camera: str, index: int, seed: int) -> np.ndarray:
     """The uint8 image of row ``index``, deterministic from (seed, index)."""
     cam = camera_for_image(truth.cameras[camera], truth.focal_scale[index])
-    plate = machine.plates[machine.views[camera]]
+    plate = machine.plates[truth.plate_names[index]]
     return render_plate_image(cam, plate, truth.T_cam_plate[index], imaging_conditions(seed, index),
                               seed=int(np.random.default_rng([seed, 11, index]).integers(2**63)),
                               extra_distortion=_extra(truth.extra_distortion[camera]))
@@ -157,8 +160,7 @@ def truth_tables(plan: pd.DataFrame, truth: CampaignTruth, machine: Machine) -> 
         images[f"T{i}{j}"] = flat[:, k]
     dots = []
     for i in range(n):
-        plate = machine.plates[machine.views[plan["camera"].iloc[i]]]
-        rc = plate.row_col()
+        rc = machine.plates[truth.plate_names[i]].row_col()
         dots.append(pd.DataFrame({"image_id": plan["image_id"].iloc[i], "row": rc[:, 0], "col": rc[:, 1],
                                   "u_px": truth.centres_px[i][:, 0], "v_px": truth.centres_px[i][:, 1]}))
     return images, pd.concat(dots, ignore_index=True)
@@ -174,10 +176,12 @@ def campaign_metadata(machine: Machine, campaign_id: str, size: str) -> dict:
                       "focal_length_mm": src["cameras"][name]["focal_length_mm"],
                       "focus_distance_mm": c.focus_distance_mm}
     machine_geometry = {k: src[k] for k in ("name", "axes", "tool_chain", "workpiece_chain", "attachments",
-                                             "tip", "workpiece", "views", "plates", "notes")}
+                                             "tip", "workpiece", "views", "calibration_targets", "plates",
+                                             "notes")}
     return {"format_version": 1, "campaign_id": campaign_id, "simulated": True,
             "fivecal_version": fivecal.__version__, "machine": machine_geometry,
-            "cameras": cams, "plates": src["plates"], "views": src["views"]}
+            "cameras": cams, "plates": src["plates"], "views": src["views"],
+            "calibration_targets": src["calibration_targets"]}
 
 
 def write_campaign_truth(folder: Path, campaign_id: str, seed: int, size: str, effects: list[str],

@@ -64,7 +64,7 @@ def one_numeric_thread() -> Iterator[None]:
 
 
 def _detect_key(context: TaskRunContext, p: dict[str, Any]) -> str:
-    rows = p["rows"][["image_id", "camera", "content_sha256", "rotation_deg"]].round({"rotation_deg": 6})
+    rows = p["rows"][["image_id", "camera", "plate", "content_sha256", "rotation_deg"]].round({"rotation_deg": 6})
     plates = {c: pl.to_dict() for c, pl in p["plates"].items()}
     return "detect-" + content_key(rows, plates, p["detector"])
 
@@ -73,7 +73,8 @@ def _calibrate_key(context: TaskRunContext, p: dict[str, Any]) -> str:
     cal_ids = p["images"].loc[p["images"]["stage"] == "camera_calibration", "image_id"]
     dots = p["dots"][p["dots"]["image_id"].isin(cal_ids)]
     groups = p["images"][["image_id", "camera", "stage", "group"]]
-    return "calibrate-" + content_key(dots, groups, p["metadata"]["cameras"], p["metadata"]["plates"])
+    return "calibrate-" + content_key(dots, groups, p["metadata"]["cameras"], p["metadata"]["plates"],
+                                      p["metadata"].get("calibration_targets", {}))
 
 
 def _poses_key(context: TaskRunContext, p: dict[str, Any]) -> str:
@@ -89,7 +90,8 @@ def read_images(campaign_id: str, results_root: Path | None) -> pd.DataFrame:
 
 @task(name="detect-dots", cache_key_fn=_detect_key, persist_result=True)
 def detect_chunk(folder: Path, rows: pd.DataFrame, plates: dict[str, DotPlate], detector: str):
-    """Dots and per-image detection status of one chunk of images."""
+    """Dots and per-image detection status of one chunk of images (rows carry the name of the plate
+    each image shows; plates: {plate name: DotPlate})."""
     return detect_images(folder, rows, plates, detector)
 
 
@@ -103,7 +105,7 @@ def calibrate(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict):
 @task(name="estimate-poses", cache_key_fn=_poses_key, persist_result=True)
 def poses(dots: pd.DataFrame, detections: pd.DataFrame, cameras: dict[str, CameraModel],
           plates: dict[str, DotPlate]) -> pd.DataFrame:
-    """PnP pose with covariance of every image (OpenCV and BLAS on one thread)."""
+    """PnP pose with covariance of every image (OpenCV and BLAS on one thread); plates: {plate name: DotPlate}."""
     with one_numeric_thread():
         return plate_poses(dots, detections, cameras, plates)
 

@@ -17,7 +17,9 @@ were the only noisy input and the PDGE profiles were exact. Two inputs it holds 
 * **the PDGE profiles.** They are extracted from the sweeps' noisy poses and then held fixed in
   the fit. A parametric bootstrap carries the pose noise through both: each draw adds noise with
   every pose's own covariance C_k to every pose and re-runs the calibration; the sample standard
-  deviation of the re-fitted parameters is the noise contribution (it contains the LM's).
+  deviation of the re-fitted parameters is the noise contribution (it contains the LM's). Where
+  the fit's residuals say that the poses scatter more than their covariances (σ² > 1), each draw
+  is scaled by √σ², as the LM's σ²(JᵀJ)⁻¹ is (the Birge ratio).
 
 A re-fit is the alternation of :func:`~tasks.identification.pige_identification.alternate`
 linearised about the identified solution: it starts there, holds the PDGE smoothers' roughness
@@ -143,7 +145,8 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
             twist[cams != cam] = 0.0
             jobs.append((cam, twist))
     rng = np.random.default_rng(seed)
-    L = np.linalg.cholesky(measurements.cov + 1e-30 * np.eye(6))
+    birge = np.sqrt(max(result.pige.fit.sigma2, 1.0))
+    L = birge * np.linalg.cholesky(measurements.cov + 1e-30 * np.eye(6))
     for _ in range(draws):
         jobs.append(("noise", np.einsum("nij,nj->ni", L, rng.standard_normal((len(measurements), 6)))))
     with ThreadPoolExecutor(max_workers=max(workers, 1)) as pool:

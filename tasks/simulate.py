@@ -176,12 +176,11 @@ def campaign_metadata(machine: Machine, campaign_id: str, size: str) -> dict:
                       "focal_length_mm": src["cameras"][name]["focal_length_mm"],
                       "focus_distance_mm": c.focus_distance_mm}
     machine_geometry = {k: src[k] for k in ("name", "axes", "tool_chain", "workpiece_chain", "attachments",
-                                             "tip", "workpiece", "views", "calibration_targets", "plates",
-                                             "notes")}
+                                             "tip", "workpiece", "views", "plates", "notes")}
+    targets = dict(src.get("calibration_targets", {}))  # optional: a camera without one calibrates on its plate
     return {"format_version": 1, "campaign_id": campaign_id, "simulated": True,
-            "fivecal_version": fivecal.__version__, "machine": machine_geometry,
-            "cameras": cams, "plates": src["plates"], "views": src["views"],
-            "calibration_targets": src["calibration_targets"]}
+            "fivecal_version": fivecal.__version__, "machine": {**machine_geometry, "calibration_targets": targets},
+            "cameras": cams, "plates": src["plates"], "views": src["views"], "calibration_targets": targets}
 
 
 def write_campaign_truth(folder: Path, campaign_id: str, seed: int, size: str, effects: list[str],

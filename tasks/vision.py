@@ -3,6 +3,10 @@
 No Prefect here. The flow ``flows/measure.py`` runs these steps as cached tasks; a notebook can
 call them directly.
 
+- :func:`plate_names`, :func:`campaign_plates`, :func:`plates_by_camera`: which plate each image
+  shows — a camera's calibration target in its camera_calibration views, the plate it measures
+  otherwise (``Machine.plate_seen``) — and the plates themselves.
+- :func:`with_detection_inputs`: the images table with each image's plate and expected rotation.
 - :func:`expected_rotations`: the in-plane angle at which each plate should appear, from the
   *nominal* kinematics at the commanded axes. It resolves the 90°/180° symmetry of a square grid;
   calibration views (plate on a fixture, any rotation) get none, and any symmetric labelling is

@@ -15,6 +15,7 @@ import pandas as pd
 
 from tasks.camera_model import CameraModel
 from tasks.machine import load_machine
+from tasks.poses import poses_from_table
 from tasks.vision import campaign_plates, detect_images, plate_names, plate_poses, plates_by_camera
 
 
@@ -69,14 +70,12 @@ def test_calibration_views_are_detected_and_posed_on_their_target(tiny_campaign)
 
     cameras = {n: CameraModel.from_dict(c)
                for n, c in json.loads((tiny_campaign / "truth" / "truth.json").read_text())["cameras"].items()}
-    poses = plate_poses(dots, detections, cameras, plates).set_index("image_id")
+    ids = calibration["image_id"].tolist()
+    T = poses_from_table(plate_poses(dots, detections, cameras, plates).set_index("image_id").loc[ids])
     truth = pd.read_parquet(tiny_campaign / "truth" / "images.parquet").set_index("image_id")
-    for image_id in calibration["image_id"]:
-        T = np.eye(4)
-        T[:3] = poses.loc[image_id, [f"T{i}{j}" for i in range(3) for j in range(4)]].to_numpy(float).reshape(3, 4)
-        T_true = np.eye(4)
-        T_true[:3] = truth.loc[image_id, [f"T{i}{j}" for i in range(3) for j in range(4)]].to_numpy(float).reshape(3, 4)
-        # the labelling may differ from the truth's by a symmetry of the square: compare grid centre and normal
-        assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.02, image_id
-        normal_angle = np.degrees(np.arccos(np.clip(T[:3, 2] @ T_true[:3, 2], -1, 1)))
+    T_true = poses_from_table(truth.loc[ids])
+    # the labelling may differ from the truth's by a symmetry of the square: compare grid centre and normal
+    for image_id, T_i, T_true_i in zip(ids, T, T_true, strict=True):
+        assert np.linalg.norm(T_i[:3, 3] - T_true_i[:3, 3]) < 0.02, image_id
+        normal_angle = np.degrees(np.arccos(np.clip(T_i[:3, 2] @ T_true_i[:3, 2], -1, 1)))
         assert normal_angle < 0.02, image_id

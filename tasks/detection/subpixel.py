@@ -14,6 +14,10 @@ contours:
   the rays sample a ``level``× area-averaged copy of the image (same information, fewer samples).
 * blur–curvature correction: blurring moves a curved rim inwards by s²/(2ρ) (ρ: radius of
   curvature); s varies across a dot on a tilted, defocused plate, so the shift is removed per ray.
+* flat field: vignetting and uneven light multiply the image by a gain that changes across a dot.
+  Along a ray a gain slope γ moves the fitted rim by about γ·s² (0.01 px for a 7 px blur near the
+  edge of the field). One smooth gain field is fitted to the grey levels at the far ends of all
+  rays of the image, and every profile is divided by it before the step fits.
 
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Units: px of the full-size image unless a name says ``level``; ray angles in
@@ -58,6 +62,7 @@ class SubpixelParams:
     max_refine: int = 3  # pass-2 repetitions at most (each re-centres the rays) …
     refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this
     blur_curvature_correction: bool = True
+    flat_field: bool = True  # divide the profiles by the image's gain field (see module docstring)
 
 
 @dataclass
@@ -231,7 +236,8 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
     that every sum over a profile is a fast leading-axis reduction). Unlike the area locator,
     which weights every sample of the window equally, this weights samples by how much they tell
     about the edge position, so the noise of the flat parts of the window hardly enters t_e.
-    Returns (t_e (K, R), s (K, R) px, converged (K, R)).
+    Returns (t_e (K, R), s (K, R) px, converged (K, R), a (K, R), b (K, R)): a and b are the
+    fitted grey levels inside and outside the rim.
     """
     f32 = np.float32
     shape = t0.shape
@@ -273,7 +279,19 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
     te = te.astype(float).reshape(shape)
     s = np.exp(ls.astype(float)).reshape(shape)
     good = np.isfinite(te) & np.isfinite(s) & (np.abs(te - t0) < 3.0 * np.maximum(sigma0[:, None], 1.0))
-    return np.where(good, te, t0), np.where(good, s, np.nan), good
+    return (np.where(good, te, t0), np.where(good, s, np.nan), good, a.astype(float).reshape(shape),
+            b.astype(float).reshape(shape))
+
+
+def plane_per_dot(values: np.ndarray, ok: np.ndarray, bu: np.ndarray, bv: np.ndarray) -> np.ndarray:
+    """Weighted LSQ of values ≈ c0 + c1·bu + c2·bv for each dot: values, ok (K, R); bu, bv
+    broadcastable to (K, R). Returns the coefficients (K, 3)."""
+    k, r = values.shape
+    basis = np.stack(np.broadcast_arrays(np.ones((k, r)), bu, bv), axis=2)  # (K, R, 3)
+    w = ok.astype(float)
+    a = np.einsum("kr,kri,krj->kij", w, basis, basis) + 1e-9 * np.eye(3)
+    b = np.einsum("kr,kri,kr->ki", w, basis, np.where(ok, values, 0.0))
+    return np.linalg.solve(a, b[..., None])[..., 0]
 
 
 def blur_model(s: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
@@ -282,13 +300,87 @@ def blur_model(s: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
     A plate tilted out of focus has a blur that changes linearly across each dot; single rays
     measure σ noisily, the three-term model averages them.
     """
+    coef = plane_per_dot(np.where(ok, s, 0.0) ** 2, ok, np.cos(ang)[None, :], np.sin(ang)[None, :])
     basis = np.stack([np.ones_like(ang), np.cos(ang), np.sin(ang)], axis=1)  # (R, 3)
-    w = ok.astype(float)
-    s2 = np.where(ok, s, 0.0) ** 2
-    a = np.einsum("kr,ri,rj->kij", w, basis, basis) + 1e-9 * np.eye(3)
-    b = np.einsum("kr,ri,kr->ki", w, basis, s2)
-    coef = np.linalg.solve(a, b[..., None])[..., 0]  # (K, 3)
     return np.clip(coef @ basis.T, 0.01, None)
+
+
+@dataclass
+class GainField:
+    """log g(u, v) up to a constant: a plane or quadratic in normalised image position.
+
+    coef: (2,) linear or (5,) quadratic coefficients (u, v[, u², uv, v²]); origin (2,) and
+    scale px normalise the position. A zero field (no correction) has coef zeros((2,)).
+    """
+
+    coef: np.ndarray
+    origin: np.ndarray
+    scale: float
+
+    @classmethod
+    def flat(cls) -> GainField:
+        return cls(np.zeros(2), np.zeros(2), 1.0)
+
+    def gradient(self, uv: np.ndarray) -> np.ndarray:
+        """∇g/g (N, 2) 1/px at image points uv (N, 2) px."""
+        c = self.coef
+        x = (uv[:, 0] - self.origin[0]) / self.scale
+        y = (uv[:, 1] - self.origin[1]) / self.scale
+        gx = c[0] + (2 * c[2] * x + c[3] * y if len(c) == 5 else 0.0 * x)
+        gy = c[1] + (c[3] * x + 2 * c[4] * y if len(c) == 5 else 0.0 * y)
+        return np.stack([gx, gy], axis=1) / self.scale
+
+
+def fit_gain_field(prof: np.ndarray, t: np.ndarray, ok: np.ndarray, cen: np.ndarray, ang: np.ndarray,
+                   n_end: int = 2) -> GainField:
+    """The image's smooth gain field (vignetting × illumination gradient) around the dots.
+
+    Vignetting and the illumination gradient multiply the dots and the plate alike and change
+    smoothly over the image. The last ``n_end`` samples at each end of every ray lie ≥ 3.5 blur σ
+    from the rim (window_sigmas), where the grey level is the dot's or the plate's own whatever
+    the blur. Their logarithm is fitted, over all dots at once, by one level per end (dot, plate)
+    plus a quadratic in image position (a plane with fewer than 9 dots). Per-dot planes were too
+    noisy (3 DN of sample noise gives ∼2e-5 /px per dot, against a vignetting gradient of
+    3e-5 /px), and levels nearer the rim mix in the blur, which changes across a tilted,
+    defocused dot. Weights ∝ grey level (shot noise on a logarithm); one refit drops samples
+    beyond 4 robust σ (dust, a neighbour's tail). prof, t: (K, R, T) grey levels and px along
+    the rays; ok: (K, R) rays to use; cen: (K, 2) ray origins px; ang: (R,) rad.
+    """
+    k = prof.shape[0]
+    cs, sn = np.cos(ang)[None, :, None], np.sin(ang)[None, :, None]
+    ends = (slice(0, n_end), slice(-n_end, None))
+    v = np.concatenate([prof[..., e] for e in ends], axis=2).astype(float)  # (K, R, 2n)
+    tt = np.concatenate([t[..., e] for e in ends], axis=2)
+    outer = np.zeros(v.shape, bool)
+    outer[..., n_end:] = True
+    use = np.broadcast_to(ok[..., None], v.shape) & (v > 0.5)
+    if k < 3 or use.sum() < 20:
+        return GainField.flat()
+    origin = cen.mean(axis=0)
+    scale = max(float(np.ptp(cen, axis=0).max()), 50.0)
+    xn = ((cen[:, 0, None, None] + tt * cs - origin[0]) / scale)[use]
+    yn = ((cen[:, 1, None, None] + tt * sn - origin[1]) / scale)[use]
+    on = outer[use]
+    cols = [~on, on, xn, yn] + ([xn * xn, xn * yn, yn * yn] if k >= 9 else [])
+    a = np.stack(cols, axis=1).astype(float)  # (N, P)
+    lv = np.log(v[use])
+    w = v[use]
+    keep = np.ones(len(lv), bool)
+    for _ in range(2):
+        sw = np.sqrt(w * keep)
+        coef = np.linalg.lstsq(a * sw[:, None], lv * sw, rcond=None)[0]
+        r = lv - a @ coef
+        keep = np.abs(r) < 4.0 * (1.4826 * np.median(np.abs(r[keep])) + 1e-12)
+    return GainField(coef[2:], origin, scale)
+
+
+def flatten_profiles(prof: np.ndarray, t: np.ndarray, cen: np.ndarray, ang: np.ndarray,
+                     gain: GainField) -> np.ndarray:
+    """Profiles (K, R, T) divided by the gain relative to each dot centre, 1 + ∇g/g·(p − c)."""
+    g = gain.gradient(cen)  # (K, 2) 1/px
+    rel = 1.0 + t * (g[:, 0, None, None] * np.cos(ang)[None, :, None]
+                     + g[:, 1, None, None] * np.sin(ang)[None, :, None])
+    return prof / np.clip(rel, 0.5, 2.0).astype(np.float32)
 
 
 def curvature_correction(s2: np.ndarray, ang: np.ndarray, axes: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -335,8 +427,11 @@ def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
     return c1, ax1, th1, sigma
 
 
-def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p):
-    """Precise rim points along pass-2 rays: (x, y, valid (K, R), s (K, R), ang (R,))."""
+def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | None = None):
+    """Precise rim points along pass-2 rays: (x, y, valid (K, R), s (K, R), ang (R,), gain field).
+
+    gain: the image's gain field, fitted here when None (the first pass sees every dot).
+    """
     lv = crop.level
     a_med = float(np.median(axs[:, 0]))
     n_rays = int(np.clip(round(p.rays_per_px * 2 * np.pi * a_med / lv), p.min_rays, p.max_rays))
@@ -353,6 +448,10 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p):
     rho = ellipse_radius_along(cen, axs, ths, ang)  # (K, R)
     t = rho[:, :, None] + u2[None, None, :] * half_w[:, None, None]
     prof, inside = sample_profiles(crop, cen, ang, t)
+    if p.flat_field:
+        if gain is None:
+            gain = fit_gain_field(prof, t, inside.all(axis=2), cen, ang)
+        prof = flatten_profiles(prof, t, cen, ang, gain)
     ne = max(2, n2 // 6)
     i_in = prof[..., :ne].mean(axis=2)
     i_out = prof[..., -ne:].mean(axis=2)
@@ -363,20 +462,20 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p):
     g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
     dts = (2 * half_w / (n2 - 1))[:, None]
     te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
-    te, s, conv = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations)
+    te, s, conv, lev_in, lev_out = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations)
     usable = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
     s2 = blur_model(s, usable, ang)
     if p.shared_blur_iterations:
         # refit with σ from the smooth per-dot model: t_e no longer trades off against a noisy s
-        te, _, conv = step_fit(prof, t, te, i_in, i_out, sigma, p.shared_blur_iterations,
-                               fixed_sigma=np.sqrt(s2))
+        te, _, conv, _, _ = step_fit(prof, t, te, lev_in, lev_out, sigma, p.shared_blur_iterations,
+                                     fixed_sigma=np.sqrt(s2))
     valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
     valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(np.sqrt(s2), half_w[:, None] / 2)
     if p.blur_curvature_correction:
         te = te + curvature_correction(s2, ang, axs, ths)
     x = cen[:, 0:1] + np.cos(ang)[None, :] * te
     y = cen[:, 1:2] + np.sin(ang)[None, :] * te
-    return x, y, valid, s, ang
+    return x, y, valid, s, ang, gain
 
 
 def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
@@ -410,11 +509,12 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     support = np.zeros(k)
     s_med = np.full(k, np.nan)
     todo = np.arange(k)
+    gain = None
     n_passes = 0
     for _ in range(p.max_refine):
         n_passes += 1
         c0, a0, h0 = cen[todo], axs[todo], ths[todo]
-        x, y, valid, s, ang = _pass2(crop2, c0, a0, h0, sigma[todo], sign, gap_ratio, p)
+        x, y, valid, s, ang, gain = _pass2(crop2, c0, a0, h0, sigma[todo], sign, gap_ratio, p, gain)
         t0 = clock()
         scale = np.maximum(a0[:, 0], 1.0)
         conic, inl, dist = robust_ellipse_fit(x, y, valid, c0, scale)

@@ -364,7 +364,7 @@ def test_grid_ordering_under_strong_perspective_and_with_strays():
 def test_vignetting_and_uneven_light_do_not_move_blurred_dot_centres():
     """The flat-field step: a gain slope across a blurred rim moves a step fit by ~γ·σ².
 
-    Plate b tilted 30° and defocused (σ up to ~5 px), 750 px off the principal point, rendered
+    Plate b tilted 30° and defocused (σ 0.6–7.9 px), 750 px off the principal point, rendered
     noise-free with and without strong vignetting (0.3) and an illumination gradient (0.1). The
     gain slope pushes every dot the same way, so the grid's mean displacement is the measure:
     without the flat field it is ~0.03 px. (Each dot also moves by ~0.01 px RMS at random, as

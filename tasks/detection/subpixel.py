@@ -283,25 +283,18 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
             b.astype(float).reshape(shape))
 
 
-def plane_per_dot(values: np.ndarray, ok: np.ndarray, bu: np.ndarray, bv: np.ndarray) -> np.ndarray:
-    """Weighted LSQ of values ≈ c0 + c1·bu + c2·bv for each dot: values, ok (K, R); bu, bv
-    broadcastable to (K, R). Returns the coefficients (K, 3)."""
-    k, r = values.shape
-    basis = np.stack(np.broadcast_arrays(np.ones((k, r)), bu, bv), axis=2)  # (K, R, 3)
-    w = ok.astype(float)
-    a = np.einsum("kr,kri,krj->kij", w, basis, basis) + 1e-9 * np.eye(3)
-    b = np.einsum("kr,kri,kr->ki", w, basis, np.where(ok, values, 0.0))
-    return np.linalg.solve(a, b[..., None])[..., 0]
-
-
 def blur_model(s: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
     """Smooth per-dot blur: σ²(θ) = c0 + c1 cos θ + c2 sin θ fitted to per-ray σ (K, R) → σ² (K, R).
 
     A plate tilted out of focus has a blur that changes linearly across each dot; single rays
     measure σ noisily, the three-term model averages them.
     """
-    coef = plane_per_dot(np.where(ok, s, 0.0) ** 2, ok, np.cos(ang)[None, :], np.sin(ang)[None, :])
     basis = np.stack([np.ones_like(ang), np.cos(ang), np.sin(ang)], axis=1)  # (R, 3)
+    w = ok.astype(float)
+    s2 = np.where(ok, s, 0.0) ** 2
+    a = np.einsum("kr,ri,rj->kij", w, basis, basis) + 1e-9 * np.eye(3)
+    b = np.einsum("kr,ri,kr->ki", w, basis, s2)
+    coef = np.linalg.solve(a, b[..., None])[..., 0]  # (K, 3)
     return np.clip(coef @ basis.T, 0.01, None)
 
 
@@ -336,8 +329,9 @@ def fit_gain_field(prof: np.ndarray, t: np.ndarray, ok: np.ndarray, cen: np.ndar
     """The image's smooth gain field (vignetting × illumination gradient) around the dots.
 
     Vignetting and the illumination gradient multiply the dots and the plate alike and change
-    smoothly over the image. The last ``n_end`` samples at each end of every ray lie ≥ 3.5 blur σ
-    from the rim (window_sigmas), where the grey level is the dot's or the plate's own whatever
+    smoothly over the image. The last ``n_end`` samples at each end of every ray lie about
+    3.5–4 blur σ from the rim (window_sigmas + pad, unless the dot's size or the gap to its
+    neighbour clips the window), where the grey level is the dot's or the plate's own whatever
     the blur. Their logarithm is fitted, over all dots at once, by one level per end (dot, plate)
     plus a quadratic in image position (a plane with fewer than 9 dots). Per-dot planes were too
     noisy (3 DN of sample noise gives ∼2e-5 /px per dot, against a vignetting gradient of

@@ -302,8 +302,8 @@ def blur_model(s: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
 class GainField:
     """log g(u, v) up to a constant: a plane or quadratic in normalised image position.
 
-    coef: (2,) linear or (5,) quadratic coefficients (u, v[, u², uv, v²]); origin (2,) and
-    scale px normalise the position. A zero field (no correction) has coef zeros((2,)).
+    coef: (5,) coefficients of u, v, u², uv, v² (the last three zero for a plane); origin (2,)
+    and scale px normalise the position. A zero field (no correction) has coef zeros(5).
     """
 
     coef: np.ndarray
@@ -312,15 +312,15 @@ class GainField:
 
     @classmethod
     def flat(cls) -> GainField:
-        return cls(np.zeros(2), np.zeros(2), 1.0)
+        return cls(np.zeros(5), np.zeros(2), 1.0)
 
     def gradient(self, uv: np.ndarray) -> np.ndarray:
         """∇g/g (N, 2) 1/px at image points uv (N, 2) px."""
         c = self.coef
         x = (uv[:, 0] - self.origin[0]) / self.scale
         y = (uv[:, 1] - self.origin[1]) / self.scale
-        gx = c[0] + (2 * c[2] * x + c[3] * y if len(c) == 5 else 0.0 * x)
-        gy = c[1] + (c[3] * x + 2 * c[4] * y if len(c) == 5 else 0.0 * y)
+        gx = c[0] + 2 * c[2] * x + c[3] * y
+        gy = c[1] + c[3] * x + 2 * c[4] * y
         return np.stack([gx, gy], axis=1) / self.scale
 
 
@@ -365,7 +365,7 @@ def fit_gain_field(prof: np.ndarray, t: np.ndarray, ok: np.ndarray, cen: np.ndar
         coef = np.linalg.lstsq(a * sw[:, None], lv * sw, rcond=None)[0]
         r = lv - a @ coef
         keep = np.abs(r) < 4.0 * (1.4826 * np.median(np.abs(r[keep])) + 1e-12)
-    return GainField(coef[2:], origin, scale)
+    return GainField(np.pad(coef[2:], (0, 7 - len(coef))), origin, scale)
 
 
 def flatten_profiles(prof: np.ndarray, t: np.ndarray, cen: np.ndarray, ang: np.ndarray,

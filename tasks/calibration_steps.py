@@ -28,7 +28,7 @@ from tasks.machine import Machine
 from tasks.verification_capture import simulate_capture
 from tasks.vision import content_key
 
-IDENTIFICATION_CODE_VERSION = "identification-5"
+IDENTIFICATION_CODE_VERSION = "identification-6"
 
 
 def _key(prefix: str, *parts) -> str:

@@ -233,3 +233,27 @@ def test_propagated_noise_is_scaled_by_the_birge_ratio_when_pose_covariances_und
     table = results["understated"].pige_table(props["understated"])
     z = ((table.value - table.truth).abs() / table.uncertainty).to_numpy()
     assert np.all(z < 3.0), table.assign(z=z)[["name", "value", "truth", "uncertainty", "uncertainty_fit"]]
+
+
+def test_propagated_noise_draws_from_the_error_model_the_fit_weights_by(machine, errors):
+    """The fit whitens by C + C_floor (0.1 µm, 1″): no image is believed better than that. Poses
+    measured as at full size (lateral 0.04 µm, depth 0.6 µm, tilt 7″) that also carry 0.1 µm of
+    lateral error their covariance does not claim: the bootstrap must draw from the same
+    C + C_floor, so its noise part contains the LM's for the laterally fixed parameters (Z.ez0,
+    gamma_YX) and every parameter stays within 3u of the truth."""
+    from tasks.identification.uncertainty import propagate_uncertainty
+
+    plan, _ = plan_campaign(machine, SMALL, 7)
+    clean = synthetic_measurements(machine, errors, _measurements(machine, plan))
+    claimed = np.diag([0.04e-3**2] * 2 + [0.6e-3**2] + [(7 * ARCSEC) ** 2] * 2 + [(0.4 * ARCSEC) ** 2])
+    scatter = claimed + np.diag([0.1e-3**2] * 2 + [0.0] * 4)
+    rng = np.random.default_rng(5)
+    T = clean.T @ se3.exp(rng.normal(size=(len(clean), 6)) @ np.linalg.cholesky(scatter).T)
+    meas = Measurements(clean.table, T, np.broadcast_to(claimed, clean.cov.shape).copy(), clean.context)
+    result = calibrate(machine, meas, errors)
+    prop = propagate_uncertainty(machine, result, meas, np.zeros((len(meas), 6, 8)), {}, draws=16)
+    ratio = dict(zip(prop.names, prop.noise / prop.fit, strict=True))
+    assert ratio["Z.ez0"] > 1.0 and ratio["gamma_YX"] > 1.0, ratio  # 1.7, 1.6 (0.7, 0.8 drawn from C alone)
+    table = result.pige_table(prop)
+    z = ((table.value - table.truth).abs() / table.uncertainty).to_numpy()
+    assert np.all(z < 3.0), table.assign(z=z)[["name", "value", "truth", "uncertainty", "uncertainty_fit"]]

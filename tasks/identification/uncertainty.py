@@ -16,10 +16,11 @@ were the only noisy input and the PDGE profiles were exact. Two inputs it holds 
   sensitivities by finite differences). 8 re-fits per camera.
 * **the PDGE profiles.** They are extracted from the sweeps' noisy poses and then held fixed in
   the fit. A parametric bootstrap carries the pose noise through both: each draw adds noise with
-  every pose's own covariance C_k to every pose and re-runs the calibration; the sample standard
-  deviation of the re-fitted parameters is the noise contribution (it contains the LM's). Where
-  the fit's residuals say that the poses scatter more than their covariances (σ² > 1), each draw
-  is scaled by √σ², as the LM's σ²(JᵀJ)⁻¹ is (the Birge ratio).
+  the error model the fit weights by, every pose's own covariance plus the floor (C_k + C_floor:
+  0.1 µm, 1″; no image is believed better than that), to every pose and re-runs the calibration;
+  the sample standard deviation of the re-fitted parameters is the noise contribution (it
+  contains the LM's). Where the fit's residuals say that the poses scatter more than that
+  (σ² > 1), each draw is scaled by √σ², as the LM's σ²(JᵀJ)⁻¹ is (the Birge ratio).
 
 A re-fit is the alternation of :func:`~tasks.identification.pige_identification.alternate`
 linearised about the identified solution: it starts there, holds the PDGE smoothers' roughness
@@ -44,6 +45,7 @@ from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import apply_parameters
 from tasks.identification.pdge_extraction import extract_pdges
 from tasks.identification.pige_identification import (
+    COV_FLOOR,
     IDENTIFICATION_CAMERA,
     IDENTIFICATION_STAGES,
     CalibrationResult,
@@ -146,7 +148,8 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
             jobs.append((cam, twist))
     rng = np.random.default_rng(seed)
     birge = np.sqrt(max(result.pige.fit.sigma2, 1.0))
-    L = birge * np.linalg.cholesky(measurements.cov + 1e-30 * np.eye(6))
+    # the error model the fit weights by (C + C_floor), which its σ² is measured against
+    L = birge * np.linalg.cholesky(measurements.cov + COV_FLOOR)
     for _ in range(draws):
         jobs.append(("noise", np.einsum("nij,nj->ni", L, rng.standard_normal((len(measurements), 6)))))
     with ThreadPoolExecutor(max_workers=max(workers, 1)) as pool:

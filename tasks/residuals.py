@@ -55,7 +55,7 @@ from tasks.identification.pige_identification import (
     pose_residuals,
     whitening,
 )
-from tasks.machine import AXIS_ORDER, Machine
+from tasks.machine import AXIS_ORDER, CALIBRATION_STAGE, Machine
 from tasks.plate import DotPlate
 
 COMPONENTS = ("dx_um", "dy_um", "dz_um", "rx_arcsec", "ry_arcsec", "rz_arcsec")
@@ -114,7 +114,7 @@ def pose_residual_table(machine: Machine, model: ErrorModel, meas: Measurements,
       so white_dx = dx/σ_dx and each later component is the standardised residual given the ones before
       it. white_norm = ‖W e‖ (the Mahalanobis distance; about √6 for a pose at the noise level).
     """
-    keep = (meas.table["stage"] != "camera_calibration").to_numpy()
+    keep = (meas.table["stage"] != CALIBRATION_STAGE).to_numpy()
     m = meas.select(keep) if not keep.all() else meas
     e = pose_residuals(machine, model, m)  # (N, 6) mm, rad, plate frame
     white = np.einsum("nij,nj->ni", whitening(m.cov), e)  # (N, 6)

@@ -103,7 +103,7 @@ def expected_rotations(metadata: dict, images: pd.DataFrame) -> pd.Series:
     """
     out = pd.Series(np.nan, index=images.index, dtype=float)
     machine = nominal_machine(metadata)
-    for camera, g in images[images["stage"] != "camera_calibration"].groupby("camera"):
+    for camera, g in images[images["stage"] != CALIBRATION_STAGE].groupby("camera"):
         if camera not in machine.cameras:
             continue
         T = forward(machine, g[list(COMMANDS)].to_numpy(float)).camera_view(camera)  # (N, 4, 4)

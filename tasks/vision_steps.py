@@ -30,6 +30,7 @@ from prefect.context import TaskRunContext
 from threadpoolctl import threadpool_limits
 
 from tasks.camera_model import CameraModel
+from tasks.machine import CALIBRATION_STAGE
 from tasks.plate import DotPlate
 from tasks.results_lake import read_table, write_partition
 from tasks.vision import calibrate_cameras, content_key, detect_images, plate_poses
@@ -70,7 +71,7 @@ def _detect_key(context: TaskRunContext, p: dict[str, Any]) -> str:
 
 
 def _calibrate_key(context: TaskRunContext, p: dict[str, Any]) -> str:
-    cal_ids = p["images"].loc[p["images"]["stage"] == "camera_calibration", "image_id"]
+    cal_ids = p["images"].loc[p["images"]["stage"] == CALIBRATION_STAGE, "image_id"]
     dots = p["dots"][p["dots"]["image_id"].isin(cal_ids)]
     groups = p["images"][["image_id", "camera", "stage", "group"]]
     return "calibrate-" + content_key(dots, groups, p["metadata"]["cameras"], p["metadata"]["plates"],

@@ -34,6 +34,15 @@ def _measurements(machine, plan: pd.DataFrame) -> Measurements:
     return planned_measurements(plan, COV)
 
 
+def _scattered(clean: Measurements, scatter: np.ndarray, seed: int, cov: np.ndarray | None = None) -> Measurements:
+    """``clean`` with every pose moved by a plate-frame twist drawn from ``scatter`` (6, 6) (seeded);
+    it reports ``cov`` (6, 6; default: clean's own covariances)."""
+    rng = np.random.default_rng(seed)
+    T = clean.T @ se3.exp(rng.normal(size=(len(clean), 6)) @ np.linalg.cholesky(scatter).T)
+    covs = clean.cov if cov is None else np.broadcast_to(cov, clean.cov.shape).copy()
+    return Measurements(clean.table, T, covs, clean.context)
+
+
 def test_pdge_extraction_recovers_the_true_profiles_from_noise_free_sweeps(machine):
     """eqs. 13-19: with exact poses, the extracted (home-referred) PDGEs equal the truth in the same gauge."""
     plan, _ = plan_campaign(machine, CampaignPlan(sweep_positions=30, sweep_repeats=1, pige_poses=4,
@@ -92,9 +101,7 @@ def test_pige_uncertainty_covers_the_error_when_the_pdge_profiles_are_known(mach
     uncertainty misses the profiles' own error: the propagated one carries it, next tests.)"""
     plan, _ = plan_campaign(machine, SMALL, 7)
     clean = synthetic_measurements(machine, errors, _measurements(machine, plan))
-    rng = np.random.default_rng(3)
-    noisy = Measurements(clean.table, clean.T @ se3.exp(rng.normal(size=(len(clean), 6)) @ np.linalg.cholesky(COV).T),
-                         clean.cov, clean.context)
+    noisy = _scattered(clean, COV, 3)
     profiles = extract_pdges(machine, ErrorModel(), clean).profiles
     poses = noisy.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
     fit = identify_pige(machine, ErrorModel(pdge=profiles), poses)
@@ -191,9 +198,7 @@ def test_propagated_uncertainty_covers_pdge_noise_and_matches_a_full_refit_for_t
 
     plan, _ = plan_campaign(machine, SMALL, 7)
     clean = synthetic_measurements(machine, errors, _measurements(machine, plan))
-    rng = np.random.default_rng(3)
-    noisy = Measurements(clean.table, clean.T @ se3.exp(rng.normal(size=(len(clean), 6)) @ np.linalg.cholesky(COV).T),
-                         clean.cov, clean.context)
+    noisy = _scattered(clean, COV, 3)
     result = calibrate(machine, noisy, errors)
     S = _focal_like_sensitivity(noisy, "camera1")
     cov = np.zeros((8, 8))
@@ -219,10 +224,8 @@ def test_propagated_noise_is_scaled_by_the_birge_ratio_when_pose_covariances_und
 
     plan, _ = plan_campaign(machine, SMALL, 7)
     clean = synthetic_measurements(machine, errors, _measurements(machine, plan))
-    rng = np.random.default_rng(3)
-    T = clean.T @ se3.exp(rng.normal(size=(len(clean), 6)) @ np.linalg.cholesky(COV).T)
-    honest = Measurements(clean.table, T, clean.cov, clean.context)
-    understated = Measurements(clean.table, T, clean.cov / 4.0, clean.context)
+    honest = _scattered(clean, COV, 3)
+    understated = Measurements(honest.table, honest.T, honest.cov / 4.0, honest.context)
     props, results = {}, {}
     for name, meas in (("honest", honest), ("understated", understated)):
         results[name] = calibrate(machine, meas, errors)
@@ -247,9 +250,7 @@ def test_propagated_noise_draws_from_the_error_model_the_fit_weights_by(machine,
     clean = synthetic_measurements(machine, errors, _measurements(machine, plan))
     claimed = np.diag([0.04e-3**2] * 2 + [0.6e-3**2] + [(7 * ARCSEC) ** 2] * 2 + [(0.4 * ARCSEC) ** 2])
     scatter = claimed + np.diag([0.1e-3**2] * 2 + [0.0] * 4)
-    rng = np.random.default_rng(5)
-    T = clean.T @ se3.exp(rng.normal(size=(len(clean), 6)) @ np.linalg.cholesky(scatter).T)
-    meas = Measurements(clean.table, T, np.broadcast_to(claimed, clean.cov.shape).copy(), clean.context)
+    meas = _scattered(clean, scatter, 5, cov=claimed)
     result = calibrate(machine, meas, errors)
     prop = propagate_uncertainty(machine, result, meas, np.zeros((len(meas), 6, 8)), {}, draws=16)
     ratio = dict(zip(prop.names, prop.noise / prop.fit, strict=True))

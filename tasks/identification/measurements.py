@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from tasks.context import PoseContext, approach_directions
-from tasks.machine import AXIS_ORDER
+from tasks.machine import AXIS_ORDER, CALIBRATION_STAGE
 from tasks.poses import covariances_from_table, poses_from_table
 
 COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # images-table names of AXIS_ORDER
@@ -109,7 +109,7 @@ def planned_measurements(plan: pd.DataFrame, cov: np.ndarray) -> Measurements:
     not move for them). cov: (6, 6) covariance given to every pose (mm, rad). The context
     (approach directions, time, temperature) comes from the plan as the capture would give it.
     """
-    rows = plan[plan.stage != "camera_calibration"]
+    rows = plan[plan.stage != CALIBRATION_STAGE]
     approach = approach_directions(plan[list(AXIS_ORDER)].to_numpy(dtype=float))[rows.index.to_numpy()]
     table = rows[["image_id", "camera", "stage", "group", "repeat", "time_s", "temperature_c",
                   *AXIS_ORDER]].reset_index(drop=True)

@@ -19,13 +19,14 @@ from tasks.poses import poses_from_table
 from tasks.vision import campaign_plates, detect_images, plate_names, plate_poses, plates_by_camera
 
 
-def _metadata(folder):
-    return json.loads((folder / "campaign.json").read_text())
+def _campaign(folder) -> tuple[dict, pd.DataFrame]:
+    """The campaign's metadata and manifest."""
+    return (json.loads((folder / "campaign.json").read_text()),
+            pd.read_csv(folder / "manifest.csv", dtype={"image_id": str}))
 
 
 def test_each_image_names_the_plate_it_shows(tiny_campaign):
-    meta = _metadata(tiny_campaign)
-    manifest = pd.read_csv(tiny_campaign / "manifest.csv", dtype={"image_id": str})
+    meta, manifest = _campaign(tiny_campaign)
     names = plate_names(meta, manifest)
     calibration = manifest["stage"] == "camera_calibration"
     expected = np.where(calibration, manifest["camera"].map({"camera1": "target_a", "camera2": "target_b"}),
@@ -38,9 +39,8 @@ def test_each_image_names_the_plate_it_shows(tiny_campaign):
 
 
 def test_a_campaign_without_calibration_targets_calibrates_on_its_measured_plate(tiny_campaign):
-    meta = _metadata(tiny_campaign)
+    meta, manifest = _campaign(tiny_campaign)
     del meta["calibration_targets"]
-    manifest = pd.read_csv(tiny_campaign / "manifest.csv", dtype={"image_id": str})
     assert set(plate_names(meta, manifest)) == {"plate_a", "plate_b"}
     assert plates_by_camera(meta, "camera_calibration") == plates_by_camera(meta)
 
@@ -50,8 +50,7 @@ def test_calibration_views_are_detected_and_posed_on_their_target(tiny_campaign)
     0.1 px max of the true projections (measured 0.011–0.021 / 0.084 px, camera 2 the worse), and
     PnP poses with the true intrinsics within 20 µm and 0.02° of the true target pose (measured
     ≤ 4 µm, ≤ 0.004°). Posed with plate a's geometry instead, the distance would be off by 80 %."""
-    meta = _metadata(tiny_campaign)
-    manifest = pd.read_csv(tiny_campaign / "manifest.csv", dtype={"image_id": str})
+    meta, manifest = _campaign(tiny_campaign)
     rows = manifest.assign(plate=plate_names(meta, manifest), rotation_deg=np.nan)
     calibration = rows[rows["stage"] == "camera_calibration"]
     plates = campaign_plates(meta)

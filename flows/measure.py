@@ -14,6 +14,7 @@ import fivecal
 from flows.ingest import ingest_campaign
 from flows.runners import image_task_runner, subflow_task_runner
 from tasks.ingest import load_campaign_metadata
+from tasks.machine import CALIBRATION_STAGE
 from tasks.vision import campaign_plates, content_key, detection_chunks, with_detection_inputs
 from tasks.vision_steps import calibrate, detect_chunk, poses, read_images, write_table
 
@@ -45,7 +46,7 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     detections = pd.concat([r[1] for r in results], ignore_index=True)
 
     # only the calibration views' dots: all that the fit reads (and hashes for its cache key)
-    calibration_ids = images.loc[images["stage"] == "camera_calibration", "image_id"]
+    calibration_ids = images.loc[images["stage"] == CALIBRATION_STAGE, "image_id"]
     cal_future = calibrate.submit(dots[dots["image_id"].isin(calibration_ids)], images, metadata)
     calibration, cameras = cal_future.result()
     cached["calibrate"] = int(cal_future.state.name == "Cached")

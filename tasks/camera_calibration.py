@@ -33,6 +33,7 @@ import pandas as pd
 
 from tasks import se3
 from tasks.camera_model import CameraModel, distort_normalised
+from tasks.machine import CALIBRATION_STAGE
 from tasks.plate import DotPlate
 
 INTRINSIC_NAMES = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")
@@ -320,7 +321,7 @@ def trial_views(dots: pd.DataFrame, manifest: pd.DataFrame, camera: str, plate: 
     stage, group (docs/campaign-format.md). Returns {trial (group): (object points, image
     points, image ids)} for the camera's ``camera_calibration`` images, dots in plate order.
     """
-    sel = manifest[(manifest["camera"] == camera) & (manifest["stage"] == "camera_calibration")]
+    sel = manifest[(manifest["camera"] == camera) & (manifest["stage"] == CALIBRATION_STAGE)]
     centres = plate.dot_centres_mm()
     n = plate.rows * plate.cols
     by_image = {k: g for k, g in dots[dots["image_id"].isin(sel["image_id"])].groupby("image_id")}
@@ -460,7 +461,7 @@ def simulated_trials(camera: str, sigma_px: float, seed: int, plan=None, machine
     rng = np.random.default_rng([seed, 101, list(machine.cameras).index(camera)])
     obj = plate.dot_centres_mm()
     out: dict[str, tuple] = {}
-    for i in np.flatnonzero((poses["camera"] == camera) & (poses["stage"] == "camera_calibration")):
+    for i in np.flatnonzero((poses["camera"] == camera) & (poses["stage"] == CALIBRATION_STAGE)):
         uv = true_dot_centres(cam, plate, fixture[int(i)]) + rng.normal(0.0, sigma_px, (len(obj), 2))
         views = out.setdefault(str(poses["group"].iloc[i]), ([], [], []))
         views[0].append(obj)

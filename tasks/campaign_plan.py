@@ -34,7 +34,7 @@ from tasks import se3
 from tasks.kinematics import forward
 from tasks.machine import AXIS_ORDER, CALIBRATION_STAGE, Machine
 
-STAGES = ("camera_calibration", "pdge", "pige", "validation")
+STAGES = (CALIBRATION_STAGE, "pdge", "pige", "validation")
 SWEEP_STEP = {"X": 1.0, "Y": 1.0, "Z": 0.2, "A": 1.0}  # mm or deg per step; C spans its stroke
 SWEEP_CAMERA = {"X": "camera1", "Y": "camera1", "Z": "camera1", "C": "camera1", "A": "camera2"}
 

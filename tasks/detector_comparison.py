@@ -67,7 +67,7 @@ CODE_VERSION = "detector-comparison-1"
 TABLE_NAME = "detector_comparison"
 ALL_CAMERAS = "all"
 DEFAULT_DETECTORS = ("rrht", "blob", "hough")
-STAGE_ORDER = ("camera_calibration", "pdge", "pige", "validation")
+STAGE_ORDER = (CALIBRATION_STAGE, "pdge", "pige", "validation")
 PRIORS = ("truth", "none")
 RUN_COLUMNS = ("image_id", "camera", "stage", "detector", "in_view", "prior_deg", "ok", "reason", "runtime_ms",
                "rotation_deg", "relabelled", "n_dots", "centre_rms_px", "centre_max_px", "pnp_status",

@@ -155,9 +155,9 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
         logger.warning("not a simulated campaign: the after-compensation capture must come from the lab")
     propagated = prop_future.result()
     cached["propagate_uncertainty"] = prop_future.state.name == "Cached"
-    if propagated is not None:  # how far the model's own uncertainty lets the tip miss, per phase
-        parts = with_model_uncertainty(parts, ids, {"before": commands, "after": compensated},
-                                       lambda c: expected_tip_errors(machine, result.model, propagated, c))
+    # how far the model's own uncertainty lets the tip miss, per phase
+    parts = with_model_uncertainty(parts, ids, {"before": commands, "after": compensated},
+                                   lambda c: expected_tip_errors(machine, result.model, propagated, c))
     verification = verification_table(parts)
     formulations = formulations_task.submit(machine, result.model,
                                             measurements.stage("pige").commands).result()

@@ -28,7 +28,7 @@ from tasks.machine import Machine
 from tasks.verification_capture import simulate_capture
 from tasks.vision import content_key
 
-IDENTIFICATION_CODE_VERSION = "identification-6"
+IDENTIFICATION_CODE_VERSION = "identification-7"
 
 
 def _key(prefix: str, *parts) -> str:
@@ -64,15 +64,13 @@ def identify_task(machine: Machine, measurements: Measurements, truth: ErrorMode
                                      p["calibration"], p["machine"].source, p["draws"]))
 def propagate_task(machine: Machine, measurements: Measurements, result: CalibrationResult, calibration: pd.DataFrame,
                    dots: pd.DataFrame, images: pd.DataFrame, cameras: dict, plates: dict, targets: dict,
-                   draws: int = NOISE_DRAWS) -> PropagatedUncertainty | None:
+                   draws: int = NOISE_DRAWS) -> PropagatedUncertainty:
     """What the camera self-calibration and the pose noise through the PDGE extraction add to the
-    identified parameters' uncertainty (:mod:`tasks.identification.uncertainty`); None for fits with
-    added effects (their uncertainty stays the LM's). calibration: the ``camera_calibration`` table
+    identified parameters' uncertainty (:mod:`tasks.identification.uncertainty`), added effects'
+    parameters included. calibration: the ``camera_calibration`` table
     (the intrinsics; its content keys the cache). dots, images: the lake tables the intrinsics'
     covariance and the poses' sensitivities are computed from. plates: {camera: the plate it measures};
     targets: {camera: the plate of its self-calibration views}."""
-    if result.model.effects:
-        return None
     covs = intrinsics_covariances(dots, images, cameras, targets)
     sens = pose_sensitivities(dots, measurements.table["image_id"].tolist(), measurements.T, cameras, plates,
                               measurements.table["camera"].tolist())

@@ -32,6 +32,7 @@ from tasks.error_model import ARCSEC, COMPONENT_SCALE, ErrorModel
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS, extract_pdges
 from tasks.identification.pige_identification import calibrate, synthetic_measurements
+from tasks.identification.uncertainty import NOISE_DRAWS, propagate_uncertainty
 from tasks.prototype_errors import load_prototype_errors
 from tasks.residuals import pose_residual_table, trend_summary
 
@@ -195,6 +196,23 @@ def test_an_added_effect_the_poses_cannot_identify_is_warned_about_with_the_pose
     assert "tool_offset" in notes and "measure the tip" in notes
     assert "scale:axis=X" in notes and "reference length along X" in notes
     assert result.pige.fit.sigma2 == pytest.approx(plain.pige.fit.sigma2, rel=0.02)
+
+
+def test_an_added_effects_fitted_amplitude_carries_the_propagated_uncertainty_that_covers_the_truth(
+        machine, frame):
+    """calibrate --add-effect with a backlash of X, started at zero, on a campaign that hides 10 µm of
+    it: the LM's own uncertainty treats the PDGE profiles as exact and puts the fitted amplitude about
+    5 of its u from the truth; the propagation of step 4 (noise drawn through the effect fit's
+    extraction and fit) widens u about fourfold and the truth lies within 3u. Pose level: no camera
+    intrinsics, so the noise part is the whole of it."""
+    meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=10")])
+    refit = calibrate(machine, meas, base=ErrorModel(effects=[parse_effect("backlash:axis=X,amount_um=0")]))
+    prop = propagate_uncertainty(machine, refit, meas, np.zeros((len(meas), 6, 8)), {})
+    row = refit.pige_table(prop).set_index("name").loc["backlash:amount_um"]
+    assert row.identifiable and row.uncertainty == pytest.approx(row.uncertainty_noise)
+    assert row.uncertainty > 2.0 * row.uncertainty_fit, (row.uncertainty, row.uncertainty_fit)
+    assert abs(row.value - 10.0) < 3.0 * row.uncertainty, (row.value, row.uncertainty)
+    assert np.isfinite(prop.noise).all() and len(prop.noise_models) == NOISE_DRAWS
 
 
 USER_EFFECT = '''

@@ -1,6 +1,6 @@
 """The calibrate flow end to end on a small simulated campaign (Prefect test harness): a re-run
-re-uses every cached task, and adding an effect re-runs the fit and what follows it but no image
-work of the campaign."""
+re-uses every cached task, and adding an effect re-runs the fit and what follows it (the
+uncertainty propagation included) but no image work of the campaign."""
 
 import shutil
 
@@ -30,5 +30,10 @@ def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image
     assert not effect["cached"]["identify"] and not effect["cached"]["cross_validate"]
     assert not effect["cached"]["diagnose"]
     assert effect["effects"] and effect["effects"][0].startswith("backlash:axis=X")
+    # its uncertainty propagated as the plain fit's is (the lake holds the last run's partition)
+    assert not effect["cached"]["propagate_uncertainty"]
+    pige = read_table("pige", results, first["campaign_id"]).set_index("name")
+    assert "backlash:amount_um" in pige.index
+    assert pige[pige.identifiable][["uncertainty_noise", "uncertainty_camera"]].notna().all().all()
     ladder = read_table("model_ladder", results, first["campaign_id"]).sort_values("step")
     assert len(ladder) == 2 and ladder["n_params"].iloc[1] == ladder["n_params"].iloc[0] + 1

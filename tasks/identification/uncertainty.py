@@ -34,11 +34,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from tasks import se3
+from tasks.diagnosis.imaging import imaging_corrected
 from tasks.error_model import ARCSEC, UM, ErrorModel
 from tasks.identification.levenberg_marquardt import right_singular
 from tasks.identification.measurements import Measurements
@@ -90,28 +91,36 @@ profile) shrinks by about 0.8 per round, so 10 rounds carry about 90 % of a pert
 def _linearised_refit(machine: Machine, result: CalibrationResult, measurements: Measurements,
                       rounds: int = LINEARISED_ROUNDS) -> Callable[[Measurements], tuple]:
     """``measurements`` moved -> (parameter values (P,), model): the alternation of
-    :func:`tasks.identification.pige_identification.alternate` from ``result``'s solution, with the
-    PDGE smoothers held and each constant fit replaced by a Gauss–Newton step with the fit's own
-    Jacobian in its identifiable subspace (the perturbations are small: a linear response)."""
+    :func:`tasks.identification.pige_identification.alternate` (or of the fit with added effects,
+    :mod:`tasks.diagnosis.effect_fit`) from ``result``'s solution, with the PDGE smoothers held and
+    each constant fit replaced by a Gauss–Newton step with the fit's own Jacobian in its
+    identifiable subspace (the perturbations are small: a linear response). Each round extracts
+    the PDGEs from the sweep poses corrected for the model's imaging bias, as the fit does."""
     specs, fit = result.pige.specs, result.pige.fit
     steps = np.array([s.jacobian_step for s in specs])
     s, Vt = right_singular(fit.jacobian * steps)  # natural units, as the LM took its subspace
     k = fit.x.size - fit.null_space.shape[1]
     V = Vt[:k].T
     gain = steps[:, None] * (V @ np.diag(1.0 / s[:k] ** 2) @ V.T @ (fit.jacobian * steps).T)  # (P, M)
+    # what the parameters are added to: the identified model less its parameters (for a fit with
+    # added effects, its effects with the fitted amplitudes at zero), with the PDGEs it was
+    # extracted with (the base's: none from the sweeps)
+    extraction = result.extraction_model or ErrorModel()
+    skeleton = replace(apply_parameters(result.model, specs, -fit.x), pdge=dict(extraction.pdge))
 
     # a perturbation moves the poses, not their covariances: one whitening serves every re-fit
     W = whitening(measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA).cov)
 
     def refit(m: Measurements) -> tuple:
         poses = m.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
-        x, extraction = fit.x, result.extraction_model or ErrorModel()
+        x, ext = fit.x, extraction
         for _ in range(rounds):
-            profiles = extract_pdges(machine, extraction, m, smoothing=result.pdge.smoothing).profiles
-            with_pdge = ErrorModel(pdge=profiles)
+            profiles = extract_pdges(machine, ext, imaging_corrected(machine, ext, m),
+                                     smoothing=result.pdge.smoothing).profiles
+            with_pdge = replace(skeleton, pdge={**skeleton.pdge, **profiles})
             r = np.einsum("nij,nj->ni", W, pose_residuals(machine, apply_parameters(with_pdge, specs, x), poses))
             x = x - gain @ r.ravel()
-            extraction = apply_parameters(ErrorModel(), specs, x)
+            ext = apply_parameters(skeleton, specs, x)
         return x, apply_parameters(with_pdge, specs, x)
 
     return refit

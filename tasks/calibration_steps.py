@@ -28,7 +28,9 @@ from tasks.machine import Machine
 from tasks.verification_capture import simulate_capture
 from tasks.vision import content_key
 
-IDENTIFICATION_CODE_VERSION = "identification-7"
+# identification-7 was taken by an uncommitted experiment (GCV_gamma, 2026-11-22) whose results sit
+# in local Prefect caches: never reuse a version an experiment ran under (give experiments a suffix)
+IDENTIFICATION_CODE_VERSION = "identification-8"
 
 
 def _key(prefix: str, *parts) -> str:

@@ -215,6 +215,21 @@ def test_an_added_effects_fitted_amplitude_carries_the_propagated_uncertainty_th
     assert np.isfinite(prop.noise).all() and len(prop.noise_models) == NOISE_DRAWS
 
 
+def test_an_added_effect_the_campaign_lacks_is_fitted_consistent_with_zero_under_the_propagated_uncertainty(
+        machine, no_effect):
+    """calibrate --add-effect with a focal drift of camera 1 on the campaign without any hidden effect:
+    the fit returns about -170 ppm/mm, which the LM's own uncertainty would call a detection (more than
+    3u); the propagated uncertainty says it is consistent with zero (within 1u here)."""
+    meas, _, _ = no_effect
+    base = ErrorModel(effects=[parse_effect("focal_drift:camera=camera1,ppm_per_mm=0,axis=Z")])
+    refit = calibrate(machine, meas, base=base)
+    prop = propagate_uncertainty(machine, refit, meas, np.zeros((len(meas), 6, 8)), {})
+    row = refit.pige_table(prop).set_index("name").loc["focal_drift:ppm_per_mm"]
+    assert row.identifiable
+    assert abs(row.value) > 3.0 * row.uncertainty_fit, (row.value, row.uncertainty_fit)
+    assert abs(row.value) < 1.0 * row.uncertainty, (row.value, row.uncertainty)
+
+
 USER_EFFECT = '''
     """A user's effect: a periodic error in time along a linear axis (e.g. a coolant pump's cycle)."""
     import numpy as np

@@ -296,7 +296,8 @@ _TABLES = (
         _c("uncertainty_camera", "float64", "unit column", PIGE_FRAME,
            "from the cameras' self-calibrated intrinsics (NaN when not propagated)"),
         _c("identifiable", "bool", meaning="the poses determine it (SVD, docs/calibrate.md)"),
-        _s("note", "why not identifiable; empty otherwise"),
+        _s("note", "why not identifiable; for an added effect's amplitude, how many standard uncertainties "
+           "it lies from zero; empty otherwise"),
         _c("truth", "float64", "unit column", PIGE_FRAME,
            "simulator's truth in the identification's gauge (NaN unless simulated)"),
         _c("truth_nominal", "float64", "unit column", PIGE_FRAME,

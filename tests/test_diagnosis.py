@@ -212,6 +212,7 @@ def test_an_added_effects_fitted_amplitude_carries_the_propagated_uncertainty_th
     assert row.identifiable and row.uncertainty == pytest.approx(row.uncertainty_noise)
     assert row.uncertainty > 2.0 * row.uncertainty_fit, (row.uncertainty, row.uncertainty_fit)
     assert abs(row.value - 10.0) < 3.0 * row.uncertainty, (row.value, row.uncertainty)
+    assert row.note == f"{row.value / row.uncertainty:.1f}u from zero"
     assert np.isfinite(prop.noise).all() and len(prop.noise_models) == NOISE_DRAWS
 
 
@@ -219,7 +220,8 @@ def test_an_added_effect_the_campaign_lacks_is_fitted_consistent_with_zero_under
         machine, no_effect):
     """calibrate --add-effect with a focal drift of camera 1 on the campaign without any hidden effect:
     the fit returns about -170 ppm/mm, which the LM's own uncertainty would call a detection (more than
-    3u); the propagated uncertainty says it is consistent with zero (within 1u here)."""
+    3u); the propagated uncertainty says it is consistent with zero (within 1u here), and the pige
+    table's note says so."""
     meas, _, _ = no_effect
     base = ErrorModel(effects=[parse_effect("focal_drift:camera=camera1,ppm_per_mm=0,axis=Z")])
     refit = calibrate(machine, meas, base=base)
@@ -228,6 +230,9 @@ def test_an_added_effect_the_campaign_lacks_is_fitted_consistent_with_zero_under
     assert row.identifiable
     assert abs(row.value) > 3.0 * row.uncertainty_fit, (row.value, row.uncertainty_fit)
     assert abs(row.value) < 1.0 * row.uncertainty, (row.value, row.uncertainty)
+    assert row.note.endswith("u from zero: consistent with no such effect")
+    assert refit.pige_table().set_index("name").loc["focal_drift:ppm_per_mm", "note"] == \
+        f"{abs(row.value) / row.uncertainty_fit:.1f}u from zero"  # the LM's alone would not say so
 
 
 USER_EFFECT = '''

@@ -177,11 +177,34 @@ class CalibrationResult:
             if self.truth is not None and s.kind == "pige":
                 nominal = self.truth.pige.get(s.name, 0.0) / s.scale
             note = "" if fit.identifiable[i] else "unidentifiable from these poses (see the identifiability section)"
+            if fit.identifiable[i] and self._is_effect_amplitude(s):
+                note = _distance_from_zero(value[i], unc[i])
             rows.append({"name": s.name, "kind": s.kind, "joint": s.target, "unit": s.unit, "value": value[i],
                          "uncertainty": unc[i], "uncertainty_fit": unc_fit[i], "uncertainty_noise": unc_noise[i],
                          "uncertainty_camera": unc_camera[i], "identifiable": bool(fit.identifiable[i]),
                          "note": note, "truth": truth_gauge[i], "truth_nominal": nominal})
         return pd.DataFrame(rows)
+
+    def _is_effect_amplitude(self, spec: ParamSpec) -> bool:
+        if spec.kind != "effect":
+            return False
+        from tasks.diagnosis.effect_params import param
+
+        return param(type(self.model.effects[spec.component]), spec.param).amplitude
+
+
+EFFECT_ABSENT_U = 2.0
+"""An added effect's amplitude within this many standard uncertainties of zero is reported as
+consistent with the effect's absence (two-sided, about 95 % for a Gaussian estimate)."""
+
+
+def _distance_from_zero(value: float, uncertainty: float) -> str:
+    """The pige table's note for an added effect's amplitude: how far from zero, in its uncertainty."""
+    if not (np.isfinite(value) and np.isfinite(uncertainty) and uncertainty > 0):
+        return ""
+    z = abs(value) / uncertainty
+    verdict = ": consistent with no such effect" if z < EFFECT_ABSENT_U else ""
+    return f"{z:.1f}u from zero{verdict}"
 
 
 ALTERNATION_ROUNDS = 6

@@ -72,17 +72,20 @@ def prefect_harness(tmp_path_factory) -> Iterator[Path]:
 
     The storage path is set in the environment (seen by any subprocess) and, because Prefect
     reads its settings when it is imported, also as a temporary setting of this process. The
-    temporary server sends no telemetry.
+    temporary server sends no telemetry and is given as long to start as the CLI gives it.
     """
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, PREFECT_SERVER_ANALYTICS_ENABLED, temporary_settings
     from prefect.testing.utilities import prefect_test_harness
+
+    from fivecal.cli import SERVER_STARTUP_TIMEOUT_S
 
     storage = tmp_path_factory.mktemp("prefect-storage")
     previous = os.environ.get("PREFECT_LOCAL_STORAGE_PATH")
     os.environ["PREFECT_LOCAL_STORAGE_PATH"] = str(storage)
     try:
         settings = {PREFECT_LOCAL_STORAGE_PATH: storage, PREFECT_SERVER_ANALYTICS_ENABLED: False}
-        with temporary_settings(updates=settings), prefect_test_harness():
+        with (temporary_settings(updates=settings),
+              prefect_test_harness(server_startup_timeout=SERVER_STARTUP_TIMEOUT_S)):
             yield storage
     finally:
         if previous is None:

@@ -297,7 +297,8 @@ _TABLES = (
            "from the cameras' self-calibrated intrinsics (NaN when not propagated)"),
         _c("identifiable", "bool", meaning="the poses determine it (SVD, docs/calibrate.md)"),
         _s("note", "why not identifiable; for an added effect's amplitude, how many standard uncertainties "
-           "it lies from zero; empty otherwise"),
+           "it lies from zero; a propagated uncertainty beyond the SVD's limit of identification (50 µm, "
+           "50 arcsec or 50 steps of an effect's parameter); empty otherwise"),
         _c("truth", "float64", "unit column", PIGE_FRAME,
            "simulator's truth in the identification's gauge (NaN unless simulated)"),
         _c("truth_nominal", "float64", "unit column", PIGE_FRAME,

@@ -230,7 +230,8 @@ def test_an_added_effect_the_campaign_lacks_is_fitted_consistent_with_zero_under
     assert row.identifiable
     assert abs(row.value) > 3.0 * row.uncertainty_fit, (row.value, row.uncertainty_fit)
     assert abs(row.value) < 1.0 * row.uncertainty, (row.value, row.uncertainty)
-    assert row.note.endswith("u from zero: consistent with no such effect")
+    assert row.note.startswith(f"{abs(row.value) / row.uncertainty:.1f}u from zero: consistent with no such effect")
+    assert row.note.endswith("the campaign hardly determines it") and row.uncertainty > 50  # ppm/mm
     assert refit.pige_table().set_index("name").loc["focal_drift:ppm_per_mm", "note"] == \
         f"{abs(row.value) / row.uncertainty_fit:.1f}u from zero"  # the LM's alone would not say so
 

@@ -18,6 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+MAX_UNCERTAINTY = 50.0
+"""Natural units (µm, arcsec, one unit of an effect's parameter): a direction known no better is
+not identified."""
+
 
 @dataclass
 class FitResult:
@@ -65,7 +69,7 @@ def numerical_jacobian(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, s
 
 
 def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, steps: np.ndarray, *,
-                        tau: float = 1e-5, max_iter: int = 50, max_uncertainty: float = 50.0,
+                        tau: float = 1e-5, max_iter: int = 50, max_uncertainty: float = MAX_UNCERTAINTY,
                         lam0: float = 1e-3) -> FitResult:
     """Minimise ½‖fun(x)‖² from x0. fun returns whitened residuals (M,). steps: (P,) difference steps.
 

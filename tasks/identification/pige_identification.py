@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from tasks.error_model import ErrorModel
-from tasks.identification.levenberg_marquardt import FitResult, levenberg_marquardt
+from tasks.identification.levenberg_marquardt import MAX_UNCERTAINTY, FitResult, levenberg_marquardt
 from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import ParamSpec, apply_parameters, default_parameters
 from tasks.identification.pdge_extraction import PdgeResult, extract_pdges
@@ -176,14 +176,25 @@ class CalibrationResult:
             nominal = np.nan
             if self.truth is not None and s.kind == "pige":
                 nominal = self.truth.pige.get(s.name, 0.0) / s.scale
-            note = "" if fit.identifiable[i] else "unidentifiable from these poses (see the identifiability section)"
-            if fit.identifiable[i] and self._is_effect_amplitude(s):
-                note = _distance_from_zero(value[i], unc[i])
+            note = self._note(s, bool(fit.identifiable[i]), value[i], unc[i], propagated is not None)
             rows.append({"name": s.name, "kind": s.kind, "joint": s.target, "unit": s.unit, "value": value[i],
                          "uncertainty": unc[i], "uncertainty_fit": unc_fit[i], "uncertainty_noise": unc_noise[i],
                          "uncertainty_camera": unc_camera[i], "identifiable": bool(fit.identifiable[i]),
                          "note": note, "truth": truth_gauge[i], "truth_nominal": nominal})
         return pd.DataFrame(rows)
+
+    def _note(self, spec: ParamSpec, identifiable: bool, value: float, uncertainty: float, propagated: bool) -> str:
+        """The pige table's note (file units): why a parameter has no value; how far an added effect's
+        amplitude lies from zero; a propagated uncertainty beyond the SVD's limit of identification."""
+        if not identifiable:
+            return "unidentifiable from these poses (see the identifiability section)"
+        notes = [_distance_from_zero(value, uncertainty)] if self._is_effect_amplitude(spec) else []
+        limit = MAX_UNCERTAINTY * spec.jacobian_step / spec.scale  # the SVD's limit in the file unit
+        if propagated and uncertainty > limit:
+            unit = "µm" if spec.unit == "um" else spec.unit
+            notes.append(f"u above the {limit:g} {unit} up to which the fit's SVD counts a parameter "
+                         "identified: the campaign hardly determines it")
+        return "; ".join(n for n in notes if n)
 
     def _is_effect_amplitude(self, spec: ParamSpec) -> bool:
         if spec.kind != "effect":

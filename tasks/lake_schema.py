@@ -31,6 +31,8 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from tasks.identification.levenberg_marquardt import MAX_UNCERTAINTY
+
 PARTITION = "campaign_id"
 DTYPES = ("string", "int64", "float64", "bool", "timestamp[us, UTC]")
 
@@ -297,8 +299,8 @@ _TABLES = (
            "from the cameras' self-calibrated intrinsics (NaN when not propagated)"),
         _c("identifiable", "bool", meaning="the poses determine it (SVD, docs/calibrate.md)"),
         _s("note", "why not identifiable; for an added effect's amplitude, how many standard uncertainties "
-           "it lies from zero; a propagated uncertainty beyond the SVD's limit of identification (50 µm, "
-           "50 arcsec or 50 steps of an effect's parameter); empty otherwise"),
+           "it lies from zero; a propagated uncertainty beyond the SVD's limit of identification "
+           f"({MAX_UNCERTAINTY:g} µm, arcsec or steps of an effect's parameter); empty otherwise"),
         _c("truth", "float64", "unit column", PIGE_FRAME,
            "simulator's truth in the identification's gauge (NaN unless simulated)"),
         _c("truth_nominal", "float64", "unit column", PIGE_FRAME,

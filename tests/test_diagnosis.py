@@ -207,7 +207,7 @@ def test_an_added_effects_fitted_amplitude_carries_the_propagated_uncertainty_th
     intrinsics, so the noise part is the whole of it."""
     meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=10")])
     refit = calibrate(machine, meas, base=ErrorModel(effects=[parse_effect("backlash:axis=X,amount_um=0")]))
-    prop = propagate_uncertainty(machine, refit, meas, np.zeros((len(meas), 6, 8)), {})
+    prop = propagate_uncertainty(machine, refit, meas)
     row = refit.pige_table(prop).set_index("name").loc["backlash:amount_um"]
     assert row.identifiable and row.uncertainty == pytest.approx(row.uncertainty_noise)
     assert row.uncertainty > 2.0 * row.uncertainty_fit, (row.uncertainty, row.uncertainty_fit)
@@ -225,7 +225,7 @@ def test_an_added_effect_the_campaign_lacks_is_fitted_consistent_with_zero_under
     meas, _, _ = no_effect
     base = ErrorModel(effects=[parse_effect("focal_drift:camera=camera1,ppm_per_mm=0,axis=Z")])
     refit = calibrate(machine, meas, base=base)
-    prop = propagate_uncertainty(machine, refit, meas, np.zeros((len(meas), 6, 8)), {})
+    prop = propagate_uncertainty(machine, refit, meas)
     row = refit.pige_table(prop).set_index("name").loc["focal_drift:ppm_per_mm"]
     assert row.identifiable
     assert abs(row.value) > 3.0 * row.uncertainty_fit, (row.value, row.uncertainty_fit)

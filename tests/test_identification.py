@@ -229,7 +229,7 @@ def test_propagated_noise_is_scaled_by_the_birge_ratio_when_pose_covariances_und
     props, results = {}, {}
     for name, meas in (("honest", honest), ("understated", understated)):
         results[name] = calibrate(machine, meas, errors)
-        props[name] = propagate_uncertainty(machine, results[name], meas, np.zeros((len(meas), 6, 8)), {}, draws=16)
+        props[name] = propagate_uncertainty(machine, results[name], meas, draws=16)
     assert 3.0 < results["understated"].pige.fit.sigma2 / results["honest"].pige.fit.sigma2 < 5.0
     ratio = props["understated"].noise / props["honest"].noise
     assert 0.6 < np.median(ratio) < 1.4, ratio
@@ -252,7 +252,7 @@ def test_propagated_noise_draws_from_the_error_model_the_fit_weights_by(machine,
     scatter = claimed + np.diag([0.1e-3**2] * 2 + [0.0] * 4)
     meas = _scattered(clean, scatter, 5, cov=claimed)
     result = calibrate(machine, meas, errors)
-    prop = propagate_uncertainty(machine, result, meas, np.zeros((len(meas), 6, 8)), {}, draws=16)
+    prop = propagate_uncertainty(machine, result, meas, draws=16)
     ratio = dict(zip(prop.names, prop.noise / prop.fit, strict=True))
     assert ratio["Z.ez0"] > 1.0 and ratio["gamma_YX"] > 1.0, ratio  # 1.7, 1.6 (0.7, 0.8 drawn from C alone)
     table = result.pige_table(prop)

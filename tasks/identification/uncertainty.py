@@ -132,14 +132,16 @@ def _moved(meas: Measurements, twist: np.ndarray) -> Measurements:
 
 
 def propagate_uncertainty(machine: Machine, result: CalibrationResult, measurements: Measurements,
-                          sensitivities: np.ndarray, intrinsics_cov: Mapping[str, np.ndarray],
+                          sensitivities: np.ndarray | None = None,
+                          intrinsics_cov: Mapping[str, np.ndarray] | None = None,
                           draws: int = NOISE_DRAWS, seed: int = UNCERTAINTY_SEED,
                           workers: int = 2) -> PropagatedUncertainty:
     """Camera and noise contributions to the uncertainty of ``result``'s parameters (module docstring).
 
     measurements: what ``result`` was calibrated from. sensitivities: (N, 6, 8) ∂δ/∂θ of its poses
     (:func:`tasks.intrinsics_uncertainty.pose_sensitivities`). intrinsics_cov: {camera: (8, 8)};
-    a camera without one (or with a NaN one) contributes nothing. draws: bootstrap draws (0: none).
+    a camera without one (or with a NaN one) contributes nothing; without both, the pose noise alone
+    (poses without images, as in the pose-level tests). draws: bootstrap draws (0: none).
     Deterministic for a given seed. workers: re-fits run side by side in threads."""
     refit = _linearised_refit(machine, result, measurements)
     # the response is measured against the same iteration on the unperturbed measurements: what is
@@ -147,7 +149,8 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
     x0, _ = refit(measurements)
     cams = measurements.table["camera"].to_numpy()
     jobs: list[tuple[str, np.ndarray]] = []
-    for cam, cov in intrinsics_cov.items():
+    camera_covs = intrinsics_cov if sensitivities is not None and intrinsics_cov else {}
+    for cam, cov in camera_covs.items():
         if not np.all(np.isfinite(cov)) or not np.any(cams == cam):
             continue
         w, V = np.linalg.eigh(cov)

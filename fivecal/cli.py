@@ -223,12 +223,16 @@ def detect(
 
 def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports: Path,
                    add_effect: list[str] | None, effect_module: list[str] | None,
-                   dask_address: str | None = None, dask_workers: int | None = None) -> dict:
-    """Check the effect options (a bad spec or module is a usage error), then run the calibrate flow on a
-    campaign that passes the campaign-level checks; returns the flow's summary."""
+                   dask_address: str | None = None, dask_workers: int | None = None,
+                   orientation: str = "full") -> dict:
+    """Check the effect and orientation options (a bad value is a usage error), then run the calibrate
+    flow on a campaign that passes the campaign-level checks; returns the flow's summary."""
+    from tasks.compensation import ORIENTATION_OBJECTIVES
     from tasks.effects import load_effect_modules, parse_effect
 
     _check_dask(dask_address, dask_workers)
+    if orientation not in ORIENTATION_OBJECTIVES:
+        raise typer.BadParameter(f"choose one of {', '.join(ORIENTATION_OBJECTIVES)}", param_hint="--orientation")
     try:
         load_effect_modules(effect_module or [])
         for spec in add_effect or []:
@@ -241,7 +245,7 @@ def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports:
 
         return calibrate_campaign(str(campaign), None if results is None else str(results), detector, str(reports),
                                   effects=list(add_effect or []), effect_modules=list(effect_module or []),
-                                  dask_address=dask_address, dask_workers=dask_workers)
+                                  dask_address=dask_address, dask_workers=dask_workers, orientation=orientation)
 
     return _on_valid_campaign(campaign, run)
 
@@ -259,15 +263,20 @@ def calibrate(
                                                                   "effect families (repeatable)")] = None,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
+    orientation: Annotated[str, typer.Option(help="what compensation turns A and C for: 'full' (the whole tip "
+                                                  "rotation, as the seed counts it) or 'tool-axis' (the tool "
+                                                  "direction exactly; the rotation about the tool axis, which a "
+                                                  "round needle does not see, left free)")] = "full",
 ) -> None:
     """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
     summary = _run_calibrate(campaign, results, detector, reports, add_effect, effect_module, dask_address,
-                             dask_workers)
+                             dask_workers, orientation)
     typer.echo(f"campaign {summary['campaign_id']}: fit σ² = {summary['sigma2']:.3g} (1 = as the pose covariances "
                f"predict); cached: {summary['cached']}")
-    typer.echo("mean tip errors of the validation poses:")
+    typer.echo("mean tip errors of the validation poses (position, orientation, tool direction):")
     for r in summary["verification_means"]:
-        typer.echo(f"  {r['phase']:>6} {r['source']:>5}: {r['position_um']:8.2f} µm {r['orientation_arcsec']:8.1f}″")
+        typer.echo(f"  {r['phase']:>6} {r['source']:>5}: {r['position_um']:8.2f} µm {r['orientation_arcsec']:8.1f}″ "
+                   f"{r['tool_direction_arcsec']:8.1f}″")
     for name, path in summary["tables"].items():
         typer.echo(f"{name} table: {path}")
     typer.echo(f"report: {summary['report']}\nmarkdown: {summary['markdown']}")

@@ -86,7 +86,7 @@ def _measure_capture(folder: Path, results_root: str | None, cameras: dict, dete
 def calibrate_campaign(campaign: str, results_root: str | None = None, detector: str = "rrht",
                        reports_root: str = "reports", run: str | None = None, effects: list[str] | None = None,
                        effect_modules: list[str] | None = None, dask_address: str | None = None,
-                       dask_workers: int | None = None) -> dict[str, Any]:
+                       dask_workers: int | None = None, orientation: str = "full") -> dict[str, Any]:
     """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path.
 
     dask_address, dask_workers: where the campaign's image work (ingest, detection, camera
@@ -96,7 +96,11 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     effects: effect specs (``family:key=value,...``) added to the model, their amplitudes fitted with
     the constant parameters (``fivecal calibrate --add-effect``). effect_modules: dotted module paths
     imported first, so that user-written effect families register themselves. Adding an effect re-runs
-    the fit, its followers and the report; the image work is served from the cache."""
+    the fit, its followers and the report; the image work is served from the cache.
+
+    orientation: the compensation's orientation objective (``tasks.compensation.ORIENTATION_OBJECTIVES``:
+    "full", the seed's whole tip rotation, or "tool-axis", the tool direction exactly); changing it
+    re-runs the compensation, the verification capture and the report."""
     logger = get_run_logger()
     load_effect_modules(effect_modules or [])
     base = ErrorModel(effects=[parse_effect(s) for s in effects or []])
@@ -133,8 +137,9 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     validation = measurements.stage("validation", camera=VALIDATION_CAMERA)
     ids = validation.table.image_id.tolist()
     commands = validation.commands
-    comp = compensate_task.submit(machine, result.model, commands)
-    compensated = comp.result()
+    comp = compensate_task.submit(machine, result.model, commands, orientation)
+    compensation = comp.result()
+    compensated = compensation.commands
     desired = desired_tip_poses(machine, commands)
     parts = {("before", "vbm"): (ids, vbm_errors(machine, result.model, desired, commands, validation.T,
                                                  validation.cov, VALIDATION_CAMERA))}
@@ -165,11 +170,12 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     provenance = {"fivecal_version": fivecal.__version__, "detector": detector, "campaign": str(folder),
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
                   "identification_code": IDENTIFICATION_CODE_VERSION, "effects": [e.spec() for e in base.effects],
+                  "orientation_objective": orientation,
                   "effect_modules": list(effect_modules or [])}
     pdge_table, pige_table = result.pdge.table, result.pige_table(propagated)
     tables = {}
     for name, df in (("pdge", pdge_table), ("pige", pige_table),
-                     ("compensation", compensation_table(ids, commands, compensated)),
+                     ("compensation", compensation_table(ids, commands, compensation)),
                      ("verification", verification), ("formulations", formulations)):
         tables[name] = str(write_partition(name, campaign_id, df, provenance, root))
 
@@ -200,10 +206,11 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                       detector_comparison=_read_optional("detector_comparison", root, campaign_id),
                       formulations=formulations, identifiability=null_space_sentences(result.pige.specs, fit),
                       provenance={**provenance, "tables": tables}, simulated=simulated,
-                      images=images, compensation=compensation_table(ids, commands, compensated),
+                      images=images, compensation=compensation_table(ids, commands, compensation),
                       extra_sections=sections, extra_figures=figures)
     paths = report_task(out_dir, data)
-    summary_rows = verification.groupby(["phase", "source"])[["position_um", "orientation_arcsec"]].mean()
+    summary_rows = verification.groupby(["phase", "source"])[["position_um", "orientation_arcsec",
+                                                              "tool_direction_arcsec"]].mean()
     logger.info(f"verification means:\n{summary_rows.round(2).to_string()}")
     return {"campaign_id": campaign_id, "report": str(paths["html"]), "markdown": str(paths["markdown"]),
             "cv_rms": cv_rms, "effects": [e.spec() for e in result.model.effects],

@@ -15,7 +15,7 @@ import pandas as pd
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from tasks.compensation import compensate
+from tasks.compensation import Compensation, compensate
 from tasks.diagnosis.diagnose import DIAGNOSIS_CODE_VERSION
 from tasks.effects import EFFECTS
 from tasks.error_model import ErrorModel
@@ -81,10 +81,12 @@ def propagate_task(machine: Machine, measurements: Measurements, result: Calibra
 
 @task(name="compensate", persist_result=True,
       cache_key_fn=lambda c, p: _key("compensate", p["model"].to_dict(), p["commands"].tolist(),
-                                     p["machine"].source))
-def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray) -> np.ndarray:
-    """Compensated commands of the validation poses by inverse kinematics of the identified model."""
-    return compensate(machine, model, commands)
+                                     p["machine"].source, p.get("orientation", "full")))
+def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full"
+                    ) -> Compensation:
+    """Compensated commands of the validation poses by inverse kinematics of the identified model,
+    under the orientation objective ``orientation`` (tasks.compensation)."""
+    return compensate(machine, model, commands, orientation)
 
 
 @task(name="simulate-verification-capture", persist_result=True,

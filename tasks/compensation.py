@@ -1,24 +1,49 @@
 """Compensation by inverse kinematics of the identified model (§5.2).
 
-The desired tip pose of a command is where the *nominal* machine would put the tip. The
-compensated command is the one at which the *identified* machine puts it there: position and tool
-direction (five axes fix five degrees of freedom; the rotation about the tool axis is left free).
-Five axes cannot fix all three rotations of the tip: the compensation places the tip exactly (X/Y/Z)
-and chooses A and C to minimise the whole orientation error, the rotation about the tool axis
-included (the seed's orientation error counts it). Near the singular pose (tool along C at A ≈ 0)
-that also stops a tilt of the tool from being "corrected" by a large turn of C that spins the
-tool about its axis.
+The desired tip pose of a command is where the *nominal* machine would put the tool. The
+compensated command is the one at which the *identified* machine puts it there. Five axes fix five
+degrees of freedom: the tip position and the tool direction; the rotation about the tool axis is
+the sixth, and what compensation does with it is the orientation objective:
+
+* ``full`` (the default): the tip exactly (X/Y/Z); A and C minimise the whole orientation error,
+  the rotation about the tool axis included, as the seed's orientation error counts it. Near the
+  singular pose (tool along C at A ≈ 0) that also stops a tilt of the tool from being "corrected"
+  by a large turn of C that spins the tool about its axis. With a perfect model this leaves the
+  tool direction off by tens of arcsec on the prototype's validation poses (docs/calibrate.md).
+* ``tool-axis``: the tip and the tool direction exactly; the rotation about the tool axis is left
+  free, which a round dispensing needle does not see. Near A ≈ 0 this may turn C by tens of degrees
+  (the rotation about the tool axis then grows by as much). A pose whose solution does not converge
+  or leaves an axis' stroke keeps its ``full`` compensation, and the table says so.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
 from tasks.error_model import ErrorModel
-from tasks.inverse_kinematics import inverse
+from tasks.inverse_kinematics import inverse, solve_inverse
 from tasks.kinematics import forward
 from tasks.machine import AXIS_ORDER, Machine
+
+ORIENTATION_OBJECTIVES = {
+    "full": "the whole tip rotation, the rotation about the tool axis included (the seed's metric)",
+    "tool-axis": "the tool direction exactly, the rotation about the tool axis left free",
+}
+SPIN_WEIGHT = 1.0  # full: rotation about the tool axis weighs like the tool direction
+ORIENTATION_WEIGHT_MM = 1.0  # mm per rad: orientation settles among A and C, X/Y/Z place the tip
+CONVERGED_MM = 1e-7  # tool-axis: largest |target − reached| (mm, and rad × ORIENTATION_WEIGHT_MM) accepted
+
+
+@dataclass(frozen=True)
+class Compensation:
+    """Compensated commands (N, 5) (mm, deg) and, per pose, the objective they meet (a key of
+    :data:`ORIENTATION_OBJECTIVES`, or ``full`` with the reason the requested one was not met)."""
+
+    commands: np.ndarray
+    objective: list[str]
 
 
 def desired_tip_poses(machine: Machine, commands: np.ndarray) -> np.ndarray:
@@ -26,26 +51,38 @@ def desired_tip_poses(machine: Machine, commands: np.ndarray) -> np.ndarray:
     return forward(machine, commands).tool_in_workpiece()
 
 
-SPIN_WEIGHT = 1.0  # rotation about the tool axis weighs like the tool direction
-ORIENTATION_WEIGHT_MM = 1.0  # mm per rad: orientation settles among A and C, X/Y/Z place the tip
-
-
-def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray) -> np.ndarray:
-    """(N, 5) compensated commands (mm, deg) reaching the nominal tip poses of ``commands`` on
-    ``model``, as near the commands as the singular poses require."""
+def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full") -> Compensation:
+    """Compensated commands (mm, deg) reaching the nominal tip poses of ``commands`` (N, 5) on
+    ``model``, under the orientation objective ``orientation`` (see the module docstring)."""
+    if orientation not in ORIENTATION_OBJECTIVES:
+        raise ValueError(f"unknown orientation objective {orientation!r}: choose one of "
+                         f"{', '.join(ORIENTATION_OBJECTIVES)}")
     desired = desired_tip_poses(machine, commands)
-    return inverse(machine, desired[:, :3, 3], desired[:, :3, 2], model, initial=commands,
-                   spin_weight=SPIN_WEIGHT, tool_x_axis=desired[:, :3, 0], direction_weight=ORIENTATION_WEIGHT_MM)
+    position, direction = desired[:, :3, 3], desired[:, :3, 2]
+    full = inverse(machine, position, direction, model, initial=commands, spin_weight=SPIN_WEIGHT,
+                   tool_x_axis=desired[:, :3, 0], direction_weight=ORIENTATION_WEIGHT_MM)
+    if orientation == "full":
+        return Compensation(full, ["full"] * len(full))
+    tool, residual = solve_inverse(machine, position, direction, model, initial=full,
+                                   direction_weight=ORIENTATION_WEIGHT_MM)
+    strokes = machine.strokes_command()
+    inside = np.all((tool >= strokes[:, 0]) & (tool <= strokes[:, 1]), axis=1)
+    converged = residual <= CONVERGED_MM  # NaN: not converged
+    keep = converged & inside
+    objective = np.where(keep, "tool-axis",
+                         np.where(converged, "full (tool-axis leaves a stroke)", "full (tool-axis did not converge)"))
+    return Compensation(np.where(keep[:, None], tool, full), objective.tolist())
 
 
-def compensation_table(image_ids, commands: np.ndarray, compensated: np.ndarray) -> pd.DataFrame:
+def compensation_table(image_ids, commands: np.ndarray, compensation: Compensation) -> pd.DataFrame:
     """The ``compensation`` lake table: nominal and compensated commands and their difference
-    (X/Y/Z in mm, A/C in deg; the correction as µm and arcsec)."""
+    (X/Y/Z in mm, A/C in deg; the correction as µm and arcsec), and the objective met per pose."""
     out = pd.DataFrame({"image_id": list(image_ids)})
     for i, axis in enumerate(AXIS_ORDER):
         out[axis] = commands[:, i]
-        out[f"{axis}_compensated"] = compensated[:, i]
+        out[f"{axis}_compensated"] = compensation.commands[:, i]
         scale = 3600.0 if axis in ("A", "C") else 1000.0
         unit = "arcsec" if axis in ("A", "C") else "um"
-        out[f"{axis}_correction_{unit}"] = (compensated[:, i] - commands[:, i]) * scale
+        out[f"{axis}_correction_{unit}"] = (compensation.commands[:, i] - commands[:, i]) * scale
+    out["orientation_objective"] = compensation.objective
     return out

@@ -50,6 +50,58 @@ def _rotary_start(machine: Machine, direction: np.ndarray, prefer: np.ndarray) -
     return cand[best]
 
 
+def solve_inverse(
+    machine: Machine,
+    tip_position_mm,
+    tool_direction,
+    errors: ErrorModel | None = None,
+    context: PoseContext | None = None,
+    initial=None,
+    prefer=None,
+    tol_mm: float = 1e-9,
+    max_iter: int = 30,
+    spin_weight: float = 0.0,
+    tool_x_axis=None,
+    direction_weight: float = DIRECTION_WEIGHT_MM,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`inverse` without the convergence check: (commands (N, 5) [mm, deg], residual (N,)),
+    the residual being the largest |target − reached| of each pose in the weighted units of the
+    least squares (mm; direction × direction_weight). With a spin weight the residual keeps the
+    rotation about the tool axis, which five axes cannot remove: it is then not a convergence test."""
+    target_p = np.atleast_2d(np.asarray(tip_position_mm, dtype=float))
+    target_d = np.atleast_2d(np.asarray(tool_direction, dtype=float))
+    target_d = target_d / np.linalg.norm(target_d, axis=1, keepdims=True)
+    target = np.concatenate([target_p, direction_weight * target_d], axis=1)
+    if spin_weight:
+        target = np.concatenate([target, spin_weight * direction_weight * np.atleast_2d(tool_x_axis)], axis=1)
+    n = target.shape[0]
+    if initial is None:
+        prefer = np.zeros((n, 5)) if prefer is None else np.broadcast_to(np.asarray(prefer, float), (n, 5))
+        cmd = _rotary_start(machine, target_d, prefer)
+    else:
+        cmd = np.array(initial, dtype=float)
+    cmd = np.atleast_2d(cmd).copy()
+    for _ in range(max_iter):
+        state = _tip_state(machine, cmd, errors, context, spin_weight, direction_weight)
+        r = target - state  # (N, 6) or (N, 9)
+        if np.max(np.abs(r)) < tol_mm:
+            break
+        # Jacobian by forward differences, all 5 columns in one batched FK of 5N poses
+        pert = cmd[:, None, :] + np.eye(5)[None] * _STEP  # (N, 5, 5)
+        ctx5 = None if context is None else context.take(np.repeat(np.arange(n), 5))
+        s5 = _tip_state(machine, pert.reshape(-1, 5), errors, ctx5, spin_weight, direction_weight).reshape(n, 5, -1)
+        J = np.swapaxes((s5 - state[:, None, :]) / _STEP[None, :, None], 1, 2)  # (N, 6 or 9, 5)
+        JtJ = np.swapaxes(J, 1, 2) @ J
+        Jtr = np.einsum("nij,ni->nj", J, r)
+        step = np.linalg.solve(JtJ + 1e-12 * np.eye(5), Jtr[..., None])[..., 0]
+        cmd = cmd + step
+        if spin_weight and np.max(np.abs(step)) < tol_mm:
+            break
+    residual = np.max(np.abs(target - _tip_state(machine, cmd, errors, context, spin_weight, direction_weight)),
+                      axis=1)
+    return cmd, residual
+
+
 def inverse(
     machine: Machine,
     tip_position_mm,
@@ -82,39 +134,11 @@ def inverse(
     trades against position in that least squares; X/Y/Z can always place the tip, so a small
     weight keeps the position exact and settles the orientation among A and C.
     """
-    target_p = np.atleast_2d(np.asarray(tip_position_mm, dtype=float))
-    target_d = np.atleast_2d(np.asarray(tool_direction, dtype=float))
-    target_d = target_d / np.linalg.norm(target_d, axis=1, keepdims=True)
-    target = np.concatenate([target_p, direction_weight * target_d], axis=1)
-    if spin_weight:
-        target = np.concatenate([target, spin_weight * direction_weight * np.atleast_2d(tool_x_axis)], axis=1)
-    n = target.shape[0]
-    if initial is None:
-        prefer = np.zeros((n, 5)) if prefer is None else np.broadcast_to(np.asarray(prefer, float), (n, 5))
-        cmd = _rotary_start(machine, target_d, prefer)
-    else:
-        cmd = np.array(initial, dtype=float)
-    cmd = np.atleast_2d(cmd).copy()
-    for _ in range(max_iter):
-        state = _tip_state(machine, cmd, errors, context, spin_weight, direction_weight)
-        r = target - state  # (N, 6) or (N, 9)
-        if np.max(np.abs(r)) < tol_mm:
-            break
-        # Jacobian by forward differences, all 5 columns in one batched FK of 5N poses
-        pert = cmd[:, None, :] + np.eye(5)[None] * _STEP  # (N, 5, 5)
-        ctx5 = None if context is None else context.take(np.repeat(np.arange(n), 5))
-        s5 = _tip_state(machine, pert.reshape(-1, 5), errors, ctx5, spin_weight, direction_weight).reshape(n, 5, -1)
-        J = np.swapaxes((s5 - state[:, None, :]) / _STEP[None, :, None], 1, 2)  # (N, 6 or 9, 5)
-        JtJ = np.swapaxes(J, 1, 2) @ J
-        Jtr = np.einsum("nij,ni->nj", J, r)
-        step = np.linalg.solve(JtJ + 1e-12 * np.eye(5), Jtr[..., None])[..., 0]
-        cmd = cmd + step
-        if spin_weight and np.max(np.abs(step)) < tol_mm:
-            break
+    cmd, residual = solve_inverse(machine, tip_position_mm, tool_direction, errors, context, initial, prefer,
+                                  tol_mm, max_iter, spin_weight, tool_x_axis, direction_weight)
     if spin_weight:
         return cmd
-    residual = np.max(np.abs(target - _tip_state(machine, cmd, errors, context, 0.0, direction_weight)), axis=1)
-    bad = np.flatnonzero(residual > max(tol_mm, 1e-7))
+    bad = np.flatnonzero(~(residual <= max(tol_mm, 1e-7)))  # NaN counts as not converged
     if bad.size:
         raise ValueError(f"inverse kinematics did not converge for poses {bad[:10].tolist()} "
                          f"(max residual {residual[bad].max():.3g} mm)")

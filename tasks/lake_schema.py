@@ -172,6 +172,9 @@ def _compensation_columns() -> tuple[Column, ...]:
                     "of the identified model)"),
                  _c(f"{axis}_correction_{corr_unit}", "float64", corr_unit, COMMAND,
                     f"{axis}_compensated − {axis}")]
+    cols.append(_s("orientation_objective", "what A and C were chosen for: 'full' (the whole tip rotation) | "
+                   "'tool-axis' (the tool direction exactly) | 'full (…)' where tool-axis was asked for and "
+                   "failed, with the reason (docs/calibrate.md, step 6)"))
     return tuple(cols)
 
 
@@ -305,9 +308,9 @@ _TABLES = (
            "simulator's truth in the identification's gauge (NaN unless simulated)"),
         _c("truth_nominal", "float64", "unit column", PIGE_FRAME,
            "simulator's raw PIGE (NaN unless simulated, or not a PIGE)"))),
-    TableSchema("compensation", 1, "validation pose", "flows/calibrate.py (fivecal calibrate)",
+    TableSchema("compensation", 2, "validation pose", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "image_id"), _compensation_columns()),
-    TableSchema("verification", 2, "validation pose × phase × source", "flows/calibrate.py (fivecal calibrate)",
+    TableSchema("verification", 3, "validation pose × phase × source", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "phase", "source", "image_id"), (
         _s("image_id", "validation image"),
         _i("pose", "0-based index of the pose within its (phase, source) rows"),
@@ -315,11 +318,16 @@ _TABLES = (
         _s("source", "vbm (as the vision system measures it) | truth (simulator)"),
         _c("position_um", "float64", "um", WORKPIECE, "‖tip position error‖"),
         _c("orientation_arcsec", "float64", "arcsec", TIP_ROTATION, "‖tip orientation error‖"),
+        _c("tool_direction_arcsec", "float64", "arcsec", WORKPIECE,
+           "angle between the reached and the desired tool axis: the part of the orientation error five "
+           "axes can remove"),
         *(_c(n, "float64", u, f, m) for n, u, f, m in _TIP),
         _c("noise_floor_position_um", "float64", "um", WORKPIECE,
            "expected position error norm from measurement noise alone (vbm rows; NaN for truth)"),
         _c("noise_floor_orientation_arcsec", "float64", "arcsec", TIP_ROTATION,
            "expected orientation error norm from measurement noise alone (vbm rows; NaN for truth)"),
+        _c("noise_floor_tool_direction_arcsec", "float64", "arcsec", WORKPIECE,
+           "expected tool-direction error from measurement noise alone (vbm rows; NaN for truth)"),
         _c("model_uncertainty_position_um", "float64", "um", WORKPIECE,
            "expected tip position error norm at this phase's commands from the identified model's "
            "uncertainty alone (NaN when not propagated)"),

@@ -5,7 +5,12 @@ T_cam_plate and the tip's pose in the camera frame (the identified hand–eye re
 T_plate_tip = T_cam_plate⁻¹ · T_cam_tip. The error is against the desired (nominal) tip pose.
 Its measurement noise is propagated from the pose covariance: a plate-frame error (v, ω) moves the
 tip by −(v + ω × p_tip), so the noise floor of a pose is sqrt(tr Σ_p) for position and
-sqrt(tr Σ_ω) for orientation (the expected error norm if the machine were perfect).
+sqrt(tr Σ_ω) for orientation (the expected error norm if the machine were perfect), and
+sqrt(tr P Σ_ω P), P = I − z zᵀ, for the tool direction (z: the tool axis).
+
+Beside the whole orientation error, each row has the tool-direction error: the angle between the
+reached and the desired tool axis (tip frame z), the part of the orientation error that five axes
+can remove (docs/calibrate.md, step 6).
 """
 
 from __future__ import annotations
@@ -37,12 +42,36 @@ def noise_floor(tip_in_plate: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, 
     return pos, ori
 
 
+def tool_direction_error(measured: np.ndarray, desired: np.ndarray) -> np.ndarray:
+    """(N,) angle (arcsec) between the tool axes (tip frame z) of the measured and desired tip
+    poses (N, 4, 4), any common frame."""
+    a, b = measured[:, :3, 2], desired[:, :3, 2]
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)) / ARCSEC
+
+
+def tip_errors_with_tool_direction(measured: np.ndarray, desired: np.ndarray) -> pd.DataFrame:
+    """:func:`tasks.kinematics.tip_pose_error` with the column tool_direction_arcsec after
+    orientation_arcsec (workpiece frame, mm in, µm and arcsec out)."""
+    out = tip_pose_error(measured, desired)
+    out.insert(2, "tool_direction_arcsec", tool_direction_error(measured, desired))
+    return out
+
+
+def tool_direction_noise_floor(tip_in_plate: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N,) expected tool-direction error (arcsec) from the pose covariances (N, 6, 6) alone: the
+    plate-frame tilt noise across the tool axis of each tip pose (N, 4, 4)."""
+    z = tip_in_plate[:, :3, 2]
+    across = np.eye(3) - z[:, :, None] * z[:, None, :]
+    return np.sqrt(np.trace(across @ cov[:, 3:, 3:] @ across, axis1=1, axis2=2)) / ARCSEC
+
+
 def vbm_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray,
                T_cam_plate: np.ndarray, cov: np.ndarray, camera: str) -> pd.DataFrame:
-    """Tip errors as measured (rows of :func:`tip_pose_error` plus noise_floor_* columns)."""
+    """Tip errors as measured (rows of :func:`tip_errors_with_tool_direction` plus noise_floor_* columns)."""
     tips = measured_tip_poses(machine, model, commands, T_cam_plate, camera)
-    out = tip_pose_error(tips, desired)
+    out = tip_errors_with_tool_direction(tips, desired)
     out["noise_floor_position_um"], out["noise_floor_orientation_arcsec"] = noise_floor(tips, cov)
+    out["noise_floor_tool_direction_arcsec"] = tool_direction_noise_floor(tips, cov)
     return out
 
 
@@ -62,7 +91,7 @@ def capture_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, com
 
 def true_errors(machine: Machine, truth: ErrorModel, desired: np.ndarray, commands: np.ndarray) -> pd.DataFrame:
     """Tip errors of the simulator's true machine at ``commands`` against ``desired``."""
-    return tip_pose_error(forward(machine, commands, truth).tool_in_workpiece(), desired)
+    return tip_errors_with_tool_direction(forward(machine, commands, truth).tool_in_workpiece(), desired)
 
 
 Parts = dict[tuple[str, str], tuple[list[str], pd.DataFrame]]

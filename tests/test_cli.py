@@ -71,3 +71,9 @@ def test_calibrate_refuses_both_an_existing_and_a_local_dask_cluster(tmp_path):
                                  "--dask-workers", "2"])
     assert result.exit_code == 2
     assert "not both" in result.output
+
+
+def test_calibrate_refuses_an_unknown_orientation_objective_before_any_work(tmp_path):
+    result = runner.invoke(app, ["calibrate", str(tmp_path), "--orientation", "tool"])
+    assert result.exit_code == 2
+    assert "full, tool-axis" in result.output

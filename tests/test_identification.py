@@ -25,7 +25,7 @@ from tasks.identification.pige_identification import (
 from tasks.kinematics import forward, tip_pose_error
 from tasks.machine import AXIS_ORDER
 from tasks.prototype_errors import load_prototype_errors
-from tasks.verification import noise_floor, true_errors
+from tasks.verification import noise_floor, tool_direction_noise_floor, true_errors
 
 COV = np.diag([0.2e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])
 
@@ -134,7 +134,7 @@ def test_compensation_places_the_tip_and_leaves_only_what_five_axes_cannot_turn(
 
     cmds = five_axis_poses(machine, 40, CampaignPlan(), rng)
     cmds[0, 3] = 0.2  # next to the singular pose
-    comp = compensate(machine, truth, cmds)
+    comp = compensate(machine, truth, cmds).commands
     desired = desired_tip_poses(machine, cmds)
     before = true_errors(machine, truth, desired, cmds)
     after = true_errors(machine, truth, desired, comp)
@@ -151,6 +151,33 @@ def test_compensation_places_the_tip_and_leaves_only_what_five_axes_cannot_turn(
             assert (worse >= after.orientation_arcsec - 0.2).all()
 
 
+def test_tool_axis_compensation_puts_the_tool_direction_right_where_full_trades_it_for_spin(machine):
+    """With the true model, the tool-axis objective leaves no tool-direction error (it turns C
+    instead, so the rotation about the tool axis grows), the full objective a smaller whole rotation
+    but tens of arcsec of tool direction. Next to the singular pose (A = 0) the tool-axis solution
+    turns C by about 19°; at C = −179.9° that leaves C's stroke, and the pose keeps its full
+    compensation, saying so."""
+    from tasks.campaign_plan import five_axis_poses
+
+    truth = load_prototype_errors()
+    cmds = five_axis_poses(machine, 40, CampaignPlan(), np.random.default_rng(2))
+    cmds[0, 3:] = [0.0, -179.9]  # the tool along C, at the end of C's stroke
+    desired = desired_tip_poses(machine, cmds)
+    full = compensate(machine, truth, cmds)
+    tool = compensate(machine, truth, cmds, orientation="tool-axis")
+    e_full = true_errors(machine, truth, desired, full.commands)
+    e_tool = true_errors(machine, truth, desired, tool.commands)
+    assert set(full.objective) == {"full"}
+    assert tool.objective[0].startswith("full (") and set(tool.objective[1:]) == {"tool-axis"}
+    np.testing.assert_array_equal(tool.commands[0], full.commands[0])
+    assert e_tool.position_um.max() < 0.01 and e_full.position_um.max() < 0.01
+    assert e_tool.tool_direction_arcsec[1:].max() < 0.01
+    assert e_full.tool_direction_arcsec.mean() > 20.0  # what the full objective gives up for the spin
+    assert e_full.orientation_arcsec.mean() < 0.5 * e_tool.orientation_arcsec.mean()
+    with pytest.raises(ValueError, match="orientation objective"):
+        compensate(machine, truth, cmds, orientation="tool")
+
+
 def test_noise_floor_propagates_tilt_noise_with_the_tip_lever_arm():
     tip = np.tile(np.eye(4), (1, 1, 1))
     tip[0, :3, 3] = [60.0, 0.0, 0.0]
@@ -158,6 +185,9 @@ def test_noise_floor_propagates_tilt_noise_with_the_tip_lever_arm():
     pos, ori = noise_floor(tip, cov)
     assert pos[0] == pytest.approx(60.0 * 1e-4 * 1e3)  # µm
     assert ori[0] == pytest.approx(1e-4 / ARCSEC)
+    assert tool_direction_noise_floor(tip, cov)[0] == pytest.approx(1e-4 / ARCSEC)  # a tilt across the tool
+    spin = np.diag([0.0] * 5 + [1e-4**2])[None]  # only a turn about the tool axis (tip z)
+    assert tool_direction_noise_floor(tip, spin)[0] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_the_smoother_chooses_scipys_roughness_and_gives_its_fit():

@@ -167,6 +167,18 @@ def test_before_after_table_before_only_and_nan():
     assert set(t["source"]) == {"vbm"}
 
 
+def test_tool_direction_rows_follow_their_column_and_have_no_seed_figure():
+    """The tool direction is |(rx, ry)| of make_verification's rows: the whole orientation here."""
+    v = HAND.assign(tool_direction_arcsec=np.hypot(HAND["rx_arcsec"], HAND["ry_arcsec"]),
+                    noise_floor_tool_direction_arcsec=2.0)
+    t = before_after_table(v)
+    tool = _row(t, "vbm", "tool direction", "mean")
+    assert tool["before"] == pytest.approx(25.0) and tool["after"] == pytest.approx(5.0)
+    assert tool["improvement_pct"] == pytest.approx(80.0) and tool["noise_floor_after"] == pytest.approx(2.0)
+    assert math.isnan(tool["seed_after"]) and math.isnan(tool["seed_improvement_pct"])
+    assert len(t) == len(before_after_table(HAND)) * 3 // 2  # a third quantity; none without its column
+
+
 def test_fmt_pm_rounds_to_two_significant_digits_of_u():
     assert fmt_pm(12.3456, 0.42) == "12.35 ± 0.42"
     assert fmt_pm(1234.5, 37.0) == "1234 ± 37" or fmt_pm(1234.5, 37.0) == "1235 ± 37"

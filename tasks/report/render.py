@@ -132,6 +132,8 @@ def summary_section(data: ReportData, ba: pd.DataFrame) -> str:
         label = "VBM" if s == "vbm" else "truth (simulator)"
         lines.append(f"- **Mean position error, {label}:** {_arrow(ba, s, 'position', 'um')}")
         lines.append(f"- **Mean orientation error, {label}:** {_arrow(ba, s, 'orientation', 'arcsec')}")
+        if (ba["quantity"] == "tool direction").any():
+            lines.append(f"- **Mean tool-direction error, {label}:** {_arrow(ba, s, 'tool direction', 'arcsec')}")
     if not sources:
         lines.append(f"- **Before/after errors:** {NOT_AVAILABLE}")
     sb, sa = SEED_BEFORE, SEED_AFTER
@@ -269,10 +271,24 @@ def before_after_section(data: ReportData, ba: pd.DataFrame, sink: _FigureSink) 
                 "tip" if ba["model_uncertainty_after"].notna().any() else "") + "."
              + "\n\n" + T.format_before_after(ba),
              T.seed_rate_note()]
+    if objective := _objective_note(data.compensation):
+        parts.append(objective)
     if data.simulated and not (vt := T.vbm_vs_truth(data.verification)).empty:
         parts.append("### VBM against truth on the validation poses\n\nHow far the vision measurement of the "
                      "tip error is from the simulator's truth, pose by pose:\n\n" + T.format_vbm_vs_truth(vt))
     return "\n\n".join(parts)
+
+
+def _objective_note(compensation: pd.DataFrame | None) -> str:
+    """What the compensation turned A and C for, counted over the validation poses ("" when unknown)."""
+    if compensation is None or "orientation_objective" not in compensation.columns:
+        return ""
+    counts = compensation["orientation_objective"].astype(str).value_counts()
+    return ("Orientation objective of the compensation (validation poses): "
+            + ", ".join(f"{name} {n}" for name, n in counts.items())
+            + ". 'full' turns A and C for the whole tip rotation, as the seed's orientation error counts it; "
+            "'tool-axis' puts the tool direction right and leaves the rotation about the tool axis free, which "
+            "five axes cannot fix along with it (docs/calibrate.md, step 6).")
 
 
 def extras_section(data: ReportData, sink: _FigureSink) -> str:

@@ -25,7 +25,9 @@ SEED_DIRECTION_STD = {"dx_um": 3.46, "dy_um": 3.26, "dz_um": 5.99,
 SEED_DIRECTION_RANGE = {"dx_um": "0–70", "dy_um": "0–70", "dz_um": "0–70",
                         "rx_arcsec": "−360–0", "ry_arcsec": "−180–180", "rz_arcsec": "−360–360"}
 """The seed's Fig. 12 ranges as its prose states them (µm, arcsec)."""
-QUANTITIES = (("position", "position_um", "um"), ("orientation", "orientation_arcsec", "arcsec"))
+QUANTITIES = (("position", "position_um", "um"), ("orientation", "orientation_arcsec", "arcsec"),
+              ("tool direction", "tool_direction_arcsec", "arcsec"))
+"""(quantity, verification column, unit); the seed publishes no tool-direction figures."""
 STATISTICS = ("mean", "max", "std")
 SOURCES = ("vbm", "truth")
 SOURCE_LABEL = {"vbm": "VBM", "truth": "truth"}
@@ -150,14 +152,16 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
     """Before/after statistics of the tip error over the validation poses, beside the seed's.
 
     verification: the report's verification frame (columns source, phase, position_um,
-    orientation_arcsec; optional noise_floor_position_um, noise_floor_orientation_arcsec).
+    orientation_arcsec; optional tool_direction_arcsec and noise_floor_<quantity column>).
     Returns one row per source present ("vbm", then "truth"), quantity ("position" in µm,
-    "orientation" in arcsec) and statistic ("mean", "max", "std" with ddof = 1), columns
+    "orientation" and, when the frame has its column, "tool direction" in arcsec) and statistic
+    ("mean", "max", "std" with ddof = 1), columns
     :data:`BEFORE_AFTER_COLUMNS`: n_before/n_after (poses with a finite value), before, after,
     improvement_pct = 100·(1 − after/before) on the mean rows only (NaN on max/std rows),
-    seed_before/seed_after (SEED_BEFORE/SEED_AFTER, same unit), seed_improvement_pct (the seed's
-    published 96.1 / 67.4 % on the mean rows), noise_floor_before/after (mean over the poses of the
-    expected error norm from measurement noise alone; on the VBM mean rows only, NaN when not given),
+    seed_before/seed_after (SEED_BEFORE/SEED_AFTER, same unit; NaN for the tool direction),
+    seed_improvement_pct (the seed's published 96.1 / 67.4 % on the mean rows), noise_floor_before/after
+    (mean over the poses of the expected error norm from measurement noise alone; on the VBM mean rows
+    only, NaN when not given),
     model_uncertainty_after (mean expected error norm after compensation from the identified model's
     uncertainty; on the mean rows, NaN when not given).
     """
@@ -165,6 +169,8 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
     present = set(verification["source"].astype(str)) if "source" in verification.columns else set()
     for source in [s for s in SOURCES if s in present]:
         for quantity, col, unit in QUANTITIES:
+            if col not in verification.columns:
+                continue
             phases = {p: _phase(verification, source, p) for p in ("before", "after")}
             stats = {p: _stats(column(f, col)) for p, f in phases.items()}
             floor = {p: _stats(column(f, f"noise_floor_{col}"))["mean"] if source == "vbm" else np.nan
@@ -178,8 +184,8 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
                     "n_before": stats["before"]["n"], "n_after": stats["after"]["n"],
                     "before": stats["before"][stat], "after": stats["after"][stat],
                     "improvement_pct": _rate(stats["before"][stat], stats["after"][stat]) if mean_row else np.nan,
-                    "seed_before": SEED_BEFORE[key], "seed_after": SEED_AFTER[key],
-                    "seed_improvement_pct": SEED_IMPROVEMENT_PCT[quantity] if mean_row else np.nan,
+                    "seed_before": SEED_BEFORE.get(key, np.nan), "seed_after": SEED_AFTER.get(key, np.nan),
+                    "seed_improvement_pct": SEED_IMPROVEMENT_PCT.get(quantity, np.nan) if mean_row else np.nan,
                     "noise_floor_before": floor["before"] if mean_row else np.nan,
                     "noise_floor_after": floor["after"] if mean_row else np.nan,
                     "model_uncertainty_after": expected if mean_row else np.nan,

@@ -75,6 +75,13 @@ class Recorded:
     def detector(self) -> str:
         return str(self.parameters["provenance"].get("detector", "rrht"))
 
+    @property
+    def calibrate_options(self) -> dict[str, Any]:
+        """The recorded run's model and compensation options, as calibrate_campaign's keywords."""
+        p = self.parameters["provenance"]
+        return {"effects": list(p.get("effects", [])), "effect_modules": list(p.get("effect_modules", [])),
+                "orientation": str(p.get("orientation_objective", "full"))}
+
 
 @dataclass
 class Difference:
@@ -180,8 +187,9 @@ def opencv_threads(n: int | None) -> Iterator[None]:
 
 
 def rerun(recorded: Recorded, workdir: Path, campaign: Path | None = None) -> tuple[Path, dict[str, Any]]:
-    """Calibrate the campaign again with the recorded detector and OpenCV thread count into
-    ``workdir/results`` and ``workdir/reports``, every Prefect task run afresh
+    """Calibrate the campaign again with the recorded detector, model and compensation options
+    (:attr:`Recorded.calibrate_options`) and OpenCV thread count into ``workdir/results`` and
+    ``workdir/reports``, every Prefect task run afresh
     (PREFECT_TASKS_REFRESH_CACHE). Returns (the reproduced report folder, calibrate's summary).
     Note: a simulated campaign's verification capture is rendered again into ``<campaign>/captures/``."""
     from prefect.settings import PREFECT_TASKS_REFRESH_CACHE, temporary_settings
@@ -192,7 +200,8 @@ def rerun(recorded: Recorded, workdir: Path, campaign: Path | None = None) -> tu
     threads = recorded.parameters.get("environment", {}).get("opencv_threads")
     with temporary_settings(updates={PREFECT_TASKS_REFRESH_CACHE: True}), opencv_threads(threads):
         summary = calibrate_campaign(str(folder), results_root=str(workdir / "results"), detector=recorded.detector,
-                                     reports_root=str(workdir / "reports"), run=RUN_NAME)
+                                     reports_root=str(workdir / "reports"), run=RUN_NAME,
+                                     **recorded.calibrate_options)
     if cached := cached_steps(summary.get("cached", {})):
         raise ReproduceError(f"the re-run read Prefect's cache ({', '.join(cached)}): it would prove nothing")
     return Path(summary["markdown"]).parent, summary

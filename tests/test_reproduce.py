@@ -237,3 +237,15 @@ def test_the_calibration_step_is_bitwise_repeatable_with_two_opencv_threads(cali
     runs = self_calibrations(calibrated_campaign, calibrate.fn, 2, n=6)
     for t in runs[1:]:
         pd.testing.assert_frame_equal(t, runs[0], check_exact=True)
+
+
+def test_the_rerun_takes_the_recorded_model_and_compensation_options(tmp_path):
+    """An --add-effect, --orientation tool-axis report re-runs as such; an older report without
+    these keys re-runs as the plain fit with the default objective."""
+    provenance = {"campaign": "c", "effects": ["backlash:axis=X,amount_um=0,amount_arcsec=0"],
+                  "effect_modules": ["my_effects"], "orientation_objective": "tool-axis"}
+    recorded = R.Recorded(tmp_path, {"provenance": provenance}, {}, None)
+    assert recorded.calibrate_options == {"effects": provenance["effects"], "effect_modules": ["my_effects"],
+                                          "orientation": "tool-axis"}
+    old = R.Recorded(tmp_path, {"provenance": {"campaign": "c"}}, {}, None)
+    assert old.calibrate_options == {"effects": [], "effect_modules": [], "orientation": "full"}

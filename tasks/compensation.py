@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from tasks.error_model import ErrorModel
-from tasks.inverse_kinematics import inverse, solve_inverse
+from tasks.inverse_kinematics import inverse
 from tasks.kinematics import forward
 from tasks.machine import AXIS_ORDER, Machine
 
@@ -63,8 +63,8 @@ def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray, orient
                    tool_x_axis=desired[:, :3, 0], direction_weight=ORIENTATION_WEIGHT_MM)
     if orientation == "full":
         return Compensation(full, ["full"] * len(full))
-    tool, residual = solve_inverse(machine, position, direction, model, initial=full,
-                                   direction_weight=ORIENTATION_WEIGHT_MM)
+    tool, residual = inverse(machine, position, direction, model, initial=full,
+                             direction_weight=ORIENTATION_WEIGHT_MM, return_residual=True)
     strokes = machine.strokes_command()
     inside = np.all((tool >= strokes[:, 0]) & (tool <= strokes[:, 1]), axis=1)
     converged = residual <= CONVERGED_MM  # NaN: not converged

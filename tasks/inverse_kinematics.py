@@ -50,7 +50,7 @@ def _rotary_start(machine: Machine, direction: np.ndarray, prefer: np.ndarray) -
     return cand[best]
 
 
-def solve_inverse(
+def inverse(
     machine: Machine,
     tip_position_mm,
     tool_direction,
@@ -63,11 +63,31 @@ def solve_inverse(
     spin_weight: float = 0.0,
     tool_x_axis=None,
     direction_weight: float = DIRECTION_WEIGHT_MM,
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`inverse` without the convergence check: (commands (N, 5) [mm, deg], residual (N,)),
-    the residual being the largest |target − reached| of each pose in the weighted units of the
-    least squares (mm; direction × direction_weight). With a spin weight the residual keeps the
-    rotation about the tool axis, which five axes cannot remove: it is then not a convergence test."""
+    return_residual: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Commands (N, 5) [mm, deg] that reach the desired tip poses.
+
+    tip_position_mm: (N, 3) tip position in the workpiece frame (mm).
+    tool_direction: (N, 3) desired tool axis (tip frame z) in the workpiece frame (unit).
+    errors: the machine's error model (None: ideal). initial: (N, 5) start commands (default:
+    grid search over the rotary axes, on the branch nearest ``prefer`` (N, 5) or (5,), default
+    home). Raises ``ValueError`` for poses that do not converge.
+
+    spin_weight: w > 0 adds the rotation about the tool axis to the least squares, with weight w
+    relative to the tool direction (``tool_x_axis`` (N, 3): the desired tip x axis). Five axes
+    cannot fix it, but near the singular pose of a five-axis head (tool along C, A ≈ 0) a small
+    tilt of the tool can only be corrected by a large turn of C that spins the tool about its axis;
+    the weight stops that trade where it costs more spin than it gains tilt. No convergence error
+    is raised then (the problem is overdetermined): the caller reads what is left from the forward
+    kinematics. direction_weight (mm per unit of direction, i.e. per rad) sets how orientation
+    trades against position in that least squares; X/Y/Z can always place the tip, so a small
+    weight keeps the position exact and settles the orientation among A and C.
+
+    return_residual: return (commands, residual (N,)) instead and raise nothing, the residual being
+    the largest |target − reached| of each pose in the least squares' weighted units (mm; direction
+    × direction_weight; with a spin weight it keeps the rotation about the tool axis, which five
+    axes cannot remove, and is then no convergence test).
+    """
     target_p = np.atleast_2d(np.asarray(tip_position_mm, dtype=float))
     target_d = np.atleast_2d(np.asarray(tool_direction, dtype=float))
     target_d = target_d / np.linalg.norm(target_d, axis=1, keepdims=True)
@@ -99,43 +119,8 @@ def solve_inverse(
             break
     residual = np.max(np.abs(target - _tip_state(machine, cmd, errors, context, spin_weight, direction_weight)),
                       axis=1)
-    return cmd, residual
-
-
-def inverse(
-    machine: Machine,
-    tip_position_mm,
-    tool_direction,
-    errors: ErrorModel | None = None,
-    context: PoseContext | None = None,
-    initial=None,
-    prefer=None,
-    tol_mm: float = 1e-9,
-    max_iter: int = 30,
-    spin_weight: float = 0.0,
-    tool_x_axis=None,
-    direction_weight: float = DIRECTION_WEIGHT_MM,
-) -> np.ndarray:
-    """Commands (N, 5) [mm, deg] that reach the desired tip poses.
-
-    tip_position_mm: (N, 3) tip position in the workpiece frame (mm).
-    tool_direction: (N, 3) desired tool axis (tip frame z) in the workpiece frame (unit).
-    errors: the machine's error model (None: ideal). initial: (N, 5) start commands (default:
-    grid search over the rotary axes, on the branch nearest ``prefer`` (N, 5) or (5,), default
-    home). Raises ``ValueError`` for poses that do not converge.
-
-    spin_weight: w > 0 adds the rotation about the tool axis to the least squares, with weight w
-    relative to the tool direction (``tool_x_axis`` (N, 3): the desired tip x axis). Five axes
-    cannot fix it, but near the singular pose of a five-axis head (tool along C, A ≈ 0) a small
-    tilt of the tool can only be corrected by a large turn of C that spins the tool about its axis;
-    the weight stops that trade where it costs more spin than it gains tilt. No convergence error
-    is raised then (the problem is overdetermined): the caller reads what is left from the forward
-    kinematics. direction_weight (mm per unit of direction, i.e. per rad) sets how orientation
-    trades against position in that least squares; X/Y/Z can always place the tip, so a small
-    weight keeps the position exact and settles the orientation among A and C.
-    """
-    cmd, residual = solve_inverse(machine, tip_position_mm, tool_direction, errors, context, initial, prefer,
-                                  tol_mm, max_iter, spin_weight, tool_x_axis, direction_weight)
+    if return_residual:
+        return cmd, residual
     if spin_weight:
         return cmd
     bad = np.flatnonzero(~(residual <= max(tol_mm, 1e-7)))  # NaN counts as not converged

@@ -179,6 +179,27 @@ def test_tool_direction_rows_follow_their_column_and_have_no_seed_figure():
     assert len(t) == len(before_after_table(HAND)) * 3 // 2  # a third quantity; none without its column
 
 
+def test_summary_says_worse_when_after_exceeds_before_and_the_objective_is_counted():
+    """Under the tool-axis objective the whole orientation error grows: the summary says "worse"
+    instead of a negative "better", and the before/after section counts the poses per objective."""
+    from tasks.report.render import before_after_section, summary_section
+
+    v = make_verification({"before": [1.0, 2.0], "after": [0.5, 0.5]}, {"before": [10.0, 20.0], "after": [30.0, 30.0]},
+                          sources=("vbm",))
+    compensation = pd.DataFrame({"image_id": ["a", "b"], "orientation_objective": ["tool-axis", "full (…)"]})
+    data = full_data(verification=v, compensation=compensation)
+    ba = before_after_table(v)
+    summary = summary_section(data, ba)
+    assert "15.0 → 30.0 arcsec (100.0 % worse)" in summary and "1.50 → 0.50 µm (66.7 % better)" in summary
+
+    class NoFigures:
+        def add(self, *args, **kwargs):
+            return ""
+
+    section = before_after_section(data, ba, NoFigures())
+    assert "(validation poses): tool-axis 1, full (…) 1." in section
+
+
 def test_fmt_pm_rounds_to_two_significant_digits_of_u():
     assert fmt_pm(12.3456, 0.42) == "12.35 ± 0.42"
     assert fmt_pm(1234.5, 37.0) == "1234 ± 37" or fmt_pm(1234.5, 37.0) == "1235 ± 37"

@@ -173,9 +173,9 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                   "orientation_objective": orientation,
                   "effect_modules": list(effect_modules or [])}
     pdge_table, pige_table = result.pdge.table, result.pige_table(propagated)
+    compensation_rows = compensation_table(ids, commands, compensation)
     tables = {}
-    for name, df in (("pdge", pdge_table), ("pige", pige_table),
-                     ("compensation", compensation_table(ids, commands, compensation)),
+    for name, df in (("pdge", pdge_table), ("pige", pige_table), ("compensation", compensation_rows),
                      ("verification", verification), ("formulations", formulations)):
         tables[name] = str(write_partition(name, campaign_id, df, provenance, root))
 
@@ -206,7 +206,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                       detector_comparison=_read_optional("detector_comparison", root, campaign_id),
                       formulations=formulations, identifiability=null_space_sentences(result.pige.specs, fit),
                       provenance={**provenance, "tables": tables}, simulated=simulated,
-                      images=images, compensation=compensation_table(ids, commands, compensation),
+                      images=images, compensation=compensation_rows,
                       extra_sections=sections, extra_figures=figures)
     paths = report_task(out_dir, data)
     summary_rows = verification.groupby(["phase", "source"])[["position_um", "orientation_arcsec",

@@ -117,12 +117,12 @@ def inverse(
         cmd = cmd + step
         if spin_weight and np.max(np.abs(step)) < tol_mm:
             break
+    if spin_weight and not return_residual:
+        return cmd  # overdetermined: no convergence test, the caller reads what is left
     residual = np.max(np.abs(target - _tip_state(machine, cmd, errors, context, spin_weight, direction_weight)),
                       axis=1)
     if return_residual:
         return cmd, residual
-    if spin_weight:
-        return cmd
     bad = np.flatnonzero(~(residual <= max(tol_mm, 1e-7)))  # NaN counts as not converged
     if bad.size:
         raise ValueError(f"inverse kinematics did not converge for poses {bad[:10].tolist()} "

@@ -9,7 +9,14 @@ from typing import Annotated
 import typer
 
 from fivecal import lake_cli, recalibrate_cli
-from fivecal.options import DaskAddress, DaskWorkers, DetectorOption, ResultsOption
+from fivecal.options import (
+    DaskAddress,
+    DaskWorkers,
+    DetectorOption,
+    OrientationOption,
+    ResultsOption,
+    check_orientation,
+)
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
@@ -227,12 +234,10 @@ def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports:
                    orientation: str = "full") -> dict:
     """Check the effect and orientation options (a bad value is a usage error), then run the calibrate
     flow on a campaign that passes the campaign-level checks; returns the flow's summary."""
-    from tasks.compensation import ORIENTATION_OBJECTIVES
     from tasks.effects import load_effect_modules, parse_effect
 
     _check_dask(dask_address, dask_workers)
-    if orientation not in ORIENTATION_OBJECTIVES:
-        raise typer.BadParameter(f"choose one of {', '.join(ORIENTATION_OBJECTIVES)}", param_hint="--orientation")
+    check_orientation(orientation)
     try:
         load_effect_modules(effect_module or [])
         for spec in add_effect or []:
@@ -263,10 +268,7 @@ def calibrate(
                                                                   "effect families (repeatable)")] = None,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
-    orientation: Annotated[str, typer.Option(help="what compensation turns A and C for: 'full' (the whole tip "
-                                                  "rotation, as the seed counts it) or 'tool-axis' (the tool "
-                                                  "direction exactly; the rotation about the tool axis, which a "
-                                                  "round needle does not see, left free)")] = "full",
+    orientation: OrientationOption = "full",
 ) -> None:
     """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
     summary = _run_calibrate(campaign, results, detector, reports, add_effect, effect_module, dask_address,

@@ -15,3 +15,18 @@ DaskAddress = Annotated[str | None, typer.Option(help="scheduler address of an e
                                                       "work, e.g. tcp://10.0.0.5:8786")]
 DaskWorkers = Annotated[int | None, typer.Option(min=1, help="run the image work on a local Dask cluster of N "
                                                              "worker processes")]
+OrientationOption = Annotated[str, typer.Option(
+    help="what compensation turns A and C for: 'full' (the whole tip rotation, as the seed counts it) or "
+         "'tool-axis' (the tool direction exactly; the rotation about the tool axis, which a round needle does "
+         "not see, left free)")]
+
+
+def check_orientation(orientation: str) -> str:
+    """``orientation`` if it is a compensation objective (tasks.compensation.ORIENTATION_OBJECTIVES);
+    a usage error naming the choices otherwise."""
+    from tasks.compensation import check_objective
+
+    try:
+        return check_objective(orientation)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--orientation") from None

@@ -17,6 +17,7 @@ from prefect import flow, get_run_logger
 from prefect.runtime import flow_run
 
 from flows.calibrate import calibrate_campaign
+from tasks.compensation import check_objective
 from tasks.drift import DriftTolerance
 from tasks.recalibration_ledger import Ledger
 from tasks.recalibration_steps import drift_report_task, scan_task
@@ -28,7 +29,8 @@ DEFAULT_SETTLE_S = 120.0
 def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, reports_root: str = "reports",
                               tolerance: DriftTolerance = DriftTolerance(),  # noqa: B008 (frozen, JSON-able)
                               reference: str | None = None, settle_seconds: float = DEFAULT_SETTLE_S,
-                              detector: str = "rrht", always_report: bool = False) -> dict[str, Any]:
+                              detector: str = "rrht", always_report: bool = False,
+                              orientation: str = "full") -> dict[str, Any]:
     """Calibrate the new campaigns under ``watch_dir`` and write the drift report.
 
     results_root: the lake (default data/results or $FIVECAL_RESULTS_DIR); the ledger lives in
@@ -37,8 +39,11 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
     tolerance: drift tolerances (µm, arcsec, coverage factor k) and recompensation thresholds.
     reference: campaign_id the drift is measured from (default: the earliest). settle_seconds: a
     folder changed more recently than this is taken to be still copying and left for the next tick.
+    orientation: the compensation objective of every calibration ("full" or "tool-axis",
+    tasks.compensation.ORIENTATION_OBJECTIVES); the drift verdict judges the orientation it aims at.
     Returns calibrated/failed/waiting/skipped campaign lists and the drift report summary (or None).
     """
+    check_objective(orientation)  # before any campaign is claimed
     logger = get_run_logger()
     ledger = Ledger.under(results_root)
     found, skipped = scan_task(watch_dir)
@@ -62,7 +67,8 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
             if e.missing_images:
                 logger.warning(f"{e.campaign_id}: {e.missing_images} image(s) of its manifest are missing; "
                                "ingest records them as faults")
-            state = calibrate_campaign(e.folder, results_root, detector, reports_root, return_state=True)
+            state = calibrate_campaign(e.folder, results_root, detector, reports_root, orientation=orientation,
+                                       return_state=True)
             if not state.is_completed():
                 logger.error(f"{e.campaign_id} ({e.folder}): calibration {state.name}: {state.message}; "
                              "retried next run")

@@ -46,6 +46,14 @@ class Compensation:
     objective: list[str]
 
 
+def check_objective(orientation: str) -> str:
+    """``orientation`` if it is a key of :data:`ORIENTATION_OBJECTIVES`; ValueError naming the choices."""
+    if orientation not in ORIENTATION_OBJECTIVES:
+        raise ValueError(f"unknown orientation objective {orientation!r}: choose one of "
+                         f"{', '.join(ORIENTATION_OBJECTIVES)}")
+    return orientation
+
+
 def desired_tip_poses(machine: Machine, commands: np.ndarray) -> np.ndarray:
     """(N, 4, 4) tip poses in the workpiece frame (mm) that the nominal machine reaches at ``commands``."""
     return forward(machine, commands).tool_in_workpiece()
@@ -54,9 +62,7 @@ def desired_tip_poses(machine: Machine, commands: np.ndarray) -> np.ndarray:
 def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full") -> Compensation:
     """Compensated commands (mm, deg) reaching the nominal tip poses of ``commands`` (N, 5) on
     ``model``, under the orientation objective ``orientation`` (see the module docstring)."""
-    if orientation not in ORIENTATION_OBJECTIVES:
-        raise ValueError(f"unknown orientation objective {orientation!r}: choose one of "
-                         f"{', '.join(ORIENTATION_OBJECTIVES)}")
+    check_objective(orientation)
     desired = desired_tip_poses(machine, commands)
     position, direction = desired[:, :3, 3], desired[:, :3, 2]
     full = inverse(machine, position, direction, model, initial=commands, spin_weight=SPIN_WEIGHT,

@@ -5,7 +5,8 @@ Science only (no Prefect). SYNOPSIS::
     from tasks.drift import DriftTolerance, drift_table, verification_summary, verdict
     from tasks.results_lake import read_table
     drift = drift_table(read_table("pige"), read_table("pdge"), read_table("images"), DriftTolerance())
-    words = verdict(drift, verification_summary(read_table("verification")), DriftTolerance())
+    summary = verification_summary(read_table("verification"), read_table("compensation"))
+    words = verdict(drift, summary, DriftTolerance())
 
 What is compared: every campaign's quantities against the same quantities of a **reference
 campaign** (by default the earliest by capture time; in a lab, the campaign whose compensation the
@@ -69,7 +70,8 @@ class DriftTolerance:
     require: which tests must be exceeded to flag: "both" (default), "abs", "sig" or "either".
     after_position_um, after_orientation_arcsec: the mean tip error after compensation over the
     validation poses (VBM measurement) above which the latest campaign's compensation is not good
-    enough (the seed reached 1.80 µm and 52.9″).
+    enough (the seed reached 1.80 µm and 52.9″). The orientation is the one the campaign's
+    compensation aims at: the whole rotation, or the tool direction under ``tool-axis``.
     """
 
     abs_um: float = 5.0
@@ -273,21 +275,49 @@ def drift_table(pige: pd.DataFrame, pdge: pd.DataFrame, images: pd.DataFrame, to
 # --------------------------------------------------------------------------------------------
 
 
-def verification_summary(verification: pd.DataFrame) -> pd.DataFrame:
+def campaign_objectives(compensation: pd.DataFrame) -> pd.Series:
+    """The orientation objective each campaign was compensated with (``campaign_id`` → "full" or
+    "tool-axis"), from the ``compensation`` table's per-pose ``orientation_objective``: "tool-axis"
+    when any pose was asked for it (a pose that fell back says so in its label), "full" otherwise,
+    also for partitions written before the column existed."""
+    if compensation.empty or "campaign_id" not in compensation:
+        return pd.Series(dtype=object, name="orientation_objective")
+    labels = compensation.get("orientation_objective", pd.Series("full", index=compensation.index))
+    asked = labels.fillna("full").astype(str).ne("full").groupby(compensation["campaign_id"].astype(str)).any()
+    return asked.map({True: "tool-axis", False: "full"}).rename("orientation_objective")
+
+
+def verification_summary(verification: pd.DataFrame, compensation: pd.DataFrame | None = None) -> pd.DataFrame:
     """Mean tip error per campaign, phase (before/after) and source (vbm/truth) over the validation
     poses: columns campaign_id, phase, source, n, position_um, position_sem_um,
-    orientation_arcsec, orientation_sem_arcsec (sem: standard error of the mean, ddof = 1)."""
+    orientation_arcsec, orientation_sem_arcsec, tool_direction_arcsec, tool_direction_sem_arcsec
+    (sem: standard error of the mean, ddof = 1; tool direction NaN for partitions without it),
+    orientation_objective (:func:`campaign_objectives` of ``compensation``; "full" without it) and
+    objective_orientation_arcsec / _sem_arcsec: the orientation error the campaign's compensation
+    aims at, the whole rotation for "full", the tool direction for "tool-axis"."""
     columns = ["campaign_id", "phase", "source", "n", "position_um", "position_sem_um", "orientation_arcsec",
-               "orientation_sem_arcsec"]
+               "orientation_sem_arcsec", "tool_direction_arcsec", "tool_direction_sem_arcsec",
+               "orientation_objective", "objective_orientation_arcsec", "objective_orientation_sem_arcsec"]
     if verification.empty:
         return pd.DataFrame(columns=columns)
     _require(verification, ("campaign_id", "phase", "source", "position_um", "orientation_arcsec"), "verification")
     v = verification.assign(campaign_id=verification["campaign_id"].astype(str))
+    if "tool_direction_arcsec" not in v:
+        v = v.assign(tool_direction_arcsec=np.nan)
+    v["tool_direction_arcsec"] = v["tool_direction_arcsec"].astype(float)
     g = v.groupby(["campaign_id", "phase", "source"])
     out = pd.DataFrame({"n": g["position_um"].count(),
                         "position_um": g["position_um"].mean(), "position_sem_um": g["position_um"].sem(),
                         "orientation_arcsec": g["orientation_arcsec"].mean(),
-                        "orientation_sem_arcsec": g["orientation_arcsec"].sem()}).reset_index()
+                        "orientation_sem_arcsec": g["orientation_arcsec"].sem(),
+                        "tool_direction_arcsec": g["tool_direction_arcsec"].mean(),
+                        "tool_direction_sem_arcsec": g["tool_direction_arcsec"].sem()}).reset_index()
+    objectives = campaign_objectives(compensation if compensation is not None else pd.DataFrame())
+    out["orientation_objective"] = [objectives.get(c, "full") for c in out["campaign_id"]]
+    tool_axis = out["orientation_objective"].eq("tool-axis")
+    for value in ("", "_sem"):
+        out[f"objective_orientation{value}_arcsec"] = out[f"orientation{value}_arcsec"].where(
+            ~tool_axis, out[f"tool_direction{value}_arcsec"])
     return out[columns]
 
 
@@ -331,7 +361,10 @@ def verdict(drift: pd.DataFrame, verification: pd.DataFrame, tolerance: DriftTol
     computed at the reference no longer describes the machine), or when its mean VBM-measured
     tip error after its own compensation exceeds ``tolerance.after_position_um`` or
     ``after_orientation_arcsec`` (the identified model does not compensate the machine well
-    enough). A flagged mount parameter (camera or plate fixture) is a note, not a reason.
+    enough). The orientation judged is the one the campaign's compensation aims at
+    (``objective_orientation_arcsec``): the whole rotation, or the tool direction for a campaign
+    compensated with ``--orientation tool-axis``. A flagged mount parameter (camera or plate
+    fixture) is a note, not a reason.
     """
     if drift.empty:
         return Verdict(False, None, None, (), ())
@@ -361,10 +394,17 @@ def verdict(drift: pd.DataFrame, verification: pd.DataFrame, tolerance: DriftTol
         notes.append("No after-compensation capture for this campaign: compensation quality not judged.")
     else:
         a = after.iloc[0]
+        tool_axis = a.orientation_objective == "tool-axis"
+        orientation = a.objective_orientation_arcsec
+        # NaN (a tool-axis partition without the column) must not pass as "within"
         past = (a.position_um > tolerance.after_position_um
-                or a.orientation_arcsec > tolerance.after_orientation_arcsec)
+                or not orientation <= tolerance.after_orientation_arcsec)
+        measure = ("of tool direction (compensated for the tool axis; the rotation about it is left free)"
+                   if tool_axis else "of orientation")
+        stated = (f"{orientation:.1f} arcsec {measure}" if np.isfinite(orientation) else
+                  f"no figure {measure} (a verification table without it)")
         sentence = (f"Mean tip error after compensation (VBM, {int(a.n)} validation poses): {a.position_um:.2f} µm "
-                    f"and {a.orientation_arcsec:.1f} arcsec (threshold {tolerance.after_position_um:g} µm, "
+                    f"and {stated} (threshold {tolerance.after_position_um:g} µm, "
                     f"{tolerance.after_orientation_arcsec:g} arcsec)")
         (reasons if past else notes).append(sentence + (": past the threshold." if past else ": within."))
     if not reasons and latest != reference:

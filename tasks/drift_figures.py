@@ -91,13 +91,15 @@ def pdge_trend(drift: pd.DataFrame, axis: str, tolerance: DriftTolerance) -> Fig
 def verification_trend(summary: pd.DataFrame, ranks: dict[str, int], tolerance: DriftTolerance) -> Figure:
     """Mean tip position (µm) and orientation (arcsec) error over the validation poses per campaign,
     before and after compensation (VBM; truth dashed when simulated), ±1 standard error of the mean,
-    with the recompensation thresholds."""
+    with the recompensation thresholds. The orientation is the one each campaign's compensation aims
+    at (``objective_orientation_arcsec``: the whole rotation, or the tool direction under tool-axis)."""
     fig = new_figure(9.0, 3.4)
     axes = fig.subplots(1, 2)
     s = summary[summary["campaign_id"].astype(str).isin(ranks)]
     for ax, (col, sem, unit, limit) in zip(axes, (
             ("position_um", "position_sem_um", "um", tolerance.after_position_um),
-            ("orientation_arcsec", "orientation_sem_arcsec", "arcsec", tolerance.after_orientation_arcsec)),
+            ("objective_orientation_arcsec", "objective_orientation_sem_arcsec", "arcsec",
+             tolerance.after_orientation_arcsec)),
             strict=True):
         if s.empty:
             _no_data(ax)
@@ -109,7 +111,7 @@ def verification_trend(summary: pd.DataFrame, ranks: dict[str, int], tolerance: 
         ax.axhline(limit, color="C3", lw=1, label=f"threshold {limit:g} {UNIT_LABEL[unit]}")
         ax.set_xticks(sorted(ranks.values()))
         ax.set_xlabel("campaign (capture order)")
-        ax.set_ylabel(f"mean {col.split('_')[0]} error ({UNIT_LABEL[unit]})")
+        ax.set_ylabel(f"mean {'position' if unit == 'um' else 'orientation'} error ({UNIT_LABEL[unit]})")
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)

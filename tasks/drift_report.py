@@ -6,7 +6,7 @@ Science only (no Prefect). SYNOPSIS::
     from tasks.drift_report import DriftReportData, write_drift_report
     tol = DriftTolerance()
     drift = drift_table(pige, pdge, images, tol)
-    summary = verification_summary(verification)
+    summary = verification_summary(verification, compensation)
     paths = write_drift_report(Path("reports/drift/20260112T020000Z"),
                                DriftReportData("20260112T020000Z", drift, summary, tol, verdict(drift, summary, tol)))
     paths["markdown"], paths["html"], paths["figures"]
@@ -58,7 +58,7 @@ def _campaigns(data: DriftReportData) -> list[str]:
 
 def campaigns_section(data: DriftReportData) -> str:
     """One row per campaign in capture order: rank, id, time, identified PIGEs, flags, mean
-    VBM tip error after compensation."""
+    VBM tip error after compensation (the orientation its compensation aims at) and the objective."""
     d, v = data.drift, data.verification
     rows = []
     for rank, campaign in enumerate(_campaigns(data), start=1):
@@ -72,10 +72,12 @@ def campaigns_section(data: DriftReportData) -> str:
                      int((g["flagged"] & (g["table"] == "pige")).sum()),
                      int((g["flagged"] & (g["table"] == "pdge")).sum()),
                      fmt(after["position_um"].iloc[0], 2) if len(after) else "–",
-                     fmt(after["orientation_arcsec"].iloc[0], 1) if len(after) else "–"])
+                     fmt(after["objective_orientation_arcsec"].iloc[0], 1) if len(after) else "–",
+                     after["orientation_objective"].iloc[0] if len(after) else "–"])
     return "## Campaigns\n\nIn capture order (first image timestamp, UTC); the rank is the x axis of the plots.\n\n" + \
         md_table(["#", "Campaign", "Captured (UTC)", "PIGEs identified", "PIGE flags", "PDGE flags",
-                  "After comp. position (µm)", "After comp. orientation (arcsec)"], rows, "rlrrrrrr")
+                  "After comp. position (µm)", "After comp. orientation (arcsec)", "Objective"], rows,
+                 "rlrrrrrrl")
 
 
 def rules_section(tol: DriftTolerance) -> str:
@@ -92,7 +94,8 @@ def rules_section(tol: DriftTolerance) -> str:
             "exceeds (`abs+sig`, `abs`, `sig`, `within`; `unavailable` when a value is missing).\n"
             f"- **Recompensation** when the latest campaign has a flagged PIGE/constant/squareness parameter or "
             f"PDGE statistic, or its mean tip error after compensation (VBM) exceeds {tol.after_position_um:g} µm "
-            f"or {tol.after_orientation_arcsec:g} arcsec.\n\n"
+            f"or {tol.after_orientation_arcsec:g} arcsec of the orientation its compensation aims at (the whole "
+            "rotation, or the tool direction for a campaign compensated with `--orientation tool-axis`).\n\n"
             "PDGE statistics over each axis' sweep: mean, std (ddof = 1) and max |·| of the measured error "
             "motion, uncertainties propagated from the per-position standard errors (see docs/recalibration.md).")
 
@@ -167,17 +170,21 @@ def verification_section(data: DriftReportData, figures: Path) -> str:
     if v.empty:
         return head + "No verification results."
     ranks = drift_figures.campaign_ranks(data.drift)
-    rows = [[f"#{ranks.get(r.campaign_id, '?')} `{r.campaign_id}`", r.phase, r.source, r.n,
-             fmt_pm(r.position_um, r.position_sem_um), fmt_pm(r.orientation_arcsec, r.orientation_sem_arcsec)]
+    rows = [[f"#{ranks.get(r.campaign_id, '?')} `{r.campaign_id}`", r.orientation_objective, r.phase, r.source, r.n,
+             fmt_pm(r.position_um, r.position_sem_um), fmt_pm(r.orientation_arcsec, r.orientation_sem_arcsec),
+             fmt_pm(r.tool_direction_arcsec, r.tool_direction_sem_arcsec)]
             for r in v.assign(rank=v["campaign_id"].map(ranks)).sort_values(["rank", "phase", "source"],
                                                                             ascending=[True, False, False])
             .itertuples()]
-    return "\n\n".join([head + "Mean over the validation poses ± standard error of the mean.",
+    text = ("Mean over the validation poses ± standard error of the mean. The orientation threshold is "
+            "applied to the orientation each campaign's compensation aims at (objective `full`: the whole "
+            "rotation; `tool-axis`: the tool direction), and the figure plots that one.")
+    return "\n\n".join([head + text,
                         _figure(figures, "verification_trend",
                                 drift_figures.verification_trend(v, ranks, data.tolerance),
                                 "Mean tip error per campaign"),
-                        md_table(["Campaign", "Phase", "Source", "Poses", "Position (µm)", "Orientation (arcsec)"],
-                                 rows, "lllrrr")])
+                        md_table(["Campaign", "Objective", "Phase", "Source", "Poses", "Position (µm)",
+                                  "Orientation (arcsec)", "Tool direction (arcsec)"], rows, "llllrrrr")])
 
 
 def _figure(folder: Path, stem: str, fig, caption: str) -> str:

@@ -34,7 +34,7 @@ def drift_report_task(results_root: str | None, out_dir: str, tolerance: DriftTo
     root = None if results_root is None else Path(results_root)
     pige, pdge, images = read_table("pige", root), read_table("pdge", root), read_table("images", root)
     drift = drift_table(pige, pdge, images, tolerance, reference)
-    summary = verification_summary(read_table("verification", root))
+    summary = verification_summary(read_table("verification", root), read_table("compensation", root))
     words = verdict(drift, summary, tolerance)
     provenance = {"fivecal_version": fivecal.__version__, "drift_code": DRIFT_CODE_VERSION, "run": run,
                   "reference_campaign_id": words.reference_campaign_id, "tolerance": tolerance.to_dict(),

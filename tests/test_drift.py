@@ -10,6 +10,7 @@ import pytest
 from tasks.drift import (
     PDGE_COMPONENTS,
     DriftTolerance,
+    campaign_objectives,
     drift_table,
     sweep_statistics,
     verdict,
@@ -58,15 +59,23 @@ def pdge_table(later_dz=(0.0, 4.0, 8.0)):
     return pd.DataFrame(rows)
 
 
-def verification_table(after_um=4.0, after_arcsec=40.0):
+def verification_table(after_um=4.0, after_arcsec=40.0, after_tool_arcsec=30.0):
     rows = []
     for campaign in (REF, LATER):
         for pose, scale in enumerate((0.5, 1.5)):
             rows.append({"campaign_id": campaign, "pose": pose, "phase": "before", "source": "vbm",
-                         "position_um": 60.0 * scale, "orientation_arcsec": 160.0 * scale})
+                         "position_um": 60.0 * scale, "orientation_arcsec": 160.0 * scale,
+                         "tool_direction_arcsec": 60.0 * scale})
             rows.append({"campaign_id": campaign, "pose": pose, "phase": "after", "source": "vbm",
-                         "position_um": after_um * scale, "orientation_arcsec": after_arcsec * scale})
+                         "position_um": after_um * scale, "orientation_arcsec": after_arcsec * scale,
+                         "tool_direction_arcsec": after_tool_arcsec * scale})
     return pd.DataFrame(rows)
+
+
+def compensation_table(later_labels=("tool-axis", "full (tool-axis leaves a stroke)")):
+    """The reference compensated with ``full``; the later campaign's poses labelled ``later_labels``."""
+    return pd.DataFrame({"campaign_id": [REF, REF, LATER, LATER], "image_id": ["v0", "v1", "v0", "v1"],
+                         "orientation_objective": ["full", "full", *later_labels]})
 
 
 @pytest.fixture
@@ -246,6 +255,40 @@ def test_verdict_recompensate_on_poor_compensation_alone():
     assert after.position_sem_um == pytest.approx(15.0, abs=1e-12)  # 15 and 45 µm: std 21.2, /√2
     v = verdict(d, summary, DriftTolerance())
     assert v.needs_recompensation and len(v.reasons) == 1 and "past the threshold" in v.reasons[0]
+
+
+def test_campaign_objective_is_the_one_asked_for_fallbacks_included():
+    objectives = campaign_objectives(compensation_table())
+    assert objectives.to_dict() == {REF: "full", LATER: "tool-axis"}
+    every_pose_fell_back = compensation_table(("full (tool-axis did not converge)",) * 2)
+    assert campaign_objectives(every_pose_fell_back)[LATER] == "tool-axis"
+    written_before_the_column = compensation_table().drop(columns="orientation_objective")
+    assert set(campaign_objectives(written_before_the_column)) == {"full"}
+    assert campaign_objectives(pd.DataFrame()).empty
+
+
+def test_tool_axis_campaign_is_judged_on_its_tool_direction():
+    quiet = pige_table()
+    quiet = quiet[quiet.name.isin(["beta_AY"])]
+    d = drift_table(quiet, pdge_table(later_dz=(0.0, 1.5, 3.0)), images_table(), DriftTolerance())
+    # the whole rotation after a tool-axis compensation is large (the spin is left free), its tool direction small
+    verification = verification_table(after_arcsec=1600.0, after_tool_arcsec=12.0)
+    summary = verification_summary(verification, compensation_table())
+    after = summary[summary.phase == "after"].set_index("campaign_id")
+    assert after.loc[LATER, ["orientation_objective", "objective_orientation_arcsec", "tool_direction_arcsec"]
+                     ].tolist() == ["tool-axis", 12.0, 12.0]
+    assert after.loc[LATER, "objective_orientation_sem_arcsec"] == pytest.approx(6.0)  # 6 and 18″: std 8.49, /√2
+    assert after.loc[REF, ["orientation_objective", "objective_orientation_arcsec"]].tolist() == ["full", 1600.0]
+    v = verdict(d, summary, DriftTolerance())
+    assert not v.needs_recompensation
+    assert "12.0 arcsec of tool direction (compensated for the tool axis" in v.text() and ": within." in v.text()
+    # without the compensation table every campaign counts as full: 1600″ of whole rotation is past 100″
+    v_full = verdict(d, verification_summary(verification), DriftTolerance())
+    assert v_full.needs_recompensation and "1600.0 arcsec of orientation" in v_full.reasons[0]
+    # a tool-axis campaign without tool-direction figures cannot pass as within
+    no_column = verification_summary(verification.drop(columns="tool_direction_arcsec"), compensation_table())
+    v_unknown = verdict(d, no_column, DriftTolerance())
+    assert v_unknown.needs_recompensation and "no figure of tool direction" in v_unknown.reasons[0]
 
 
 # --------------------------------------------------------------------------------------------

@@ -71,7 +71,7 @@ def test_each_dropped_campaign_is_calibrated_exactly_once(prefect_harness, tmp_p
     assert first["drift"]["campaigns"] == ["w1"]
 
     w2 = drop_campaign(watch, "w2", seed=2, days_later=7)
-    second = tick(watch, results, reports)
+    second = tick(watch, results, reports, orientation="tool-axis")  # the lab switched objectives
     assert (second["calibrated"], second["already_calibrated"]) == (["w2"], ["w1"])
     third = tick(watch, results, reports)
     assert (third["calibrated"], sorted(third["already_calibrated"]), third["drift"]) == ([], ["w1", "w2"], None)
@@ -92,17 +92,24 @@ def test_each_dropped_campaign_is_calibrated_exactly_once(prefect_harness, tmp_p
     assert (drift.groupby("campaign_id").size() == n_pige + 5 * 6 * 3).all()  # PIGEs + 5 axes × 6 × 3 stats
     markdown = open(second["drift"]["markdown"]).read()
     assert "| 1 | `w1` (reference) |" in markdown and "| 2 | `w2` |" in markdown
+    # w2 was compensated for the tool axis (a pose that fell back says so): judged on its tool direction
+    assert set(read_table("compensation", results, "w1").orientation_objective) == {"full"}
+    assert not (read_table("compensation", results, "w2").orientation_objective == "full").any()
+    assert "of tool direction (compensated for the tool axis" in second["drift"]["verdict"]
+    assert markdown.count("| tool-axis |") == 5  # the campaigns row and w2's four verification rows
     assert markdown.count("](figures/") == 7  # PIGE, 5 PDGE axes, verification
     assert second["drift"]["report"].startswith(str(reports / "drift"))
 
 
 @flow(name="fake-calibrate")
-def failing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None):
+def failing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None,
+                      orientation="full"):
     raise RuntimeError(f"simulated crash on {campaign}")
 
 
 @flow(name="fake-calibrate")
-def passing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None):
+def passing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None,
+                      orientation="full"):
     return {"report": f"{campaign}/report.html"}
 
 
@@ -174,7 +181,8 @@ def test_serve_recalibration_serves_the_flow_on_its_cron(prefect_harness, tmp_pa
     monkeypatch.chdir(tmp_path)
     (tmp_path / "watch").mkdir()
     result = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "0 2 * * *", "--results",
-                                      "res", "--tolerance", "abs_arcsec=20", "--timezone", "Europe/Zurich"])
+                                      "res", "--tolerance", "abs_arcsec=20", "--timezone", "Europe/Zurich",
+                                      "--orientation", "tool-axis"])
     assert result.exit_code == 0, result.output
     (kw,) = calls
     assert (kw["name"], kw["limit"], kw["schedules"][0].cron, kw["schedules"][0].timezone) == (
@@ -182,7 +190,11 @@ def test_serve_recalibration_serves_the_flow_on_its_cron(prefect_harness, tmp_pa
     p = kw["parameters"]
     assert (p["watch_dir"], p["results_root"], p["reports_root"]) == (
         str(tmp_path / "watch"), str(tmp_path / "res"), str(tmp_path / "reports"))  # absolute: runs start elsewhere
-    assert p["tolerance"]["abs_arcsec"] == 20.0 and recalibrate.recalibrate_new_campaigns.validate_parameters(p)
+    assert p["tolerance"]["abs_arcsec"] == 20.0 and p["orientation"] == "tool-axis"
+    assert recalibrate.recalibrate_new_campaigns.validate_parameters(p)
+    unknown = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "0 2 * * *",
+                                       "--orientation", "spin"])
+    assert unknown.exit_code == 2 and "full, tool-axis" in unknown.output
     bad = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "61 2 * * *"])
     assert bad.exit_code == 2 and "not a valid cron schedule" in " ".join(bad.output.replace("│", " ").split())
 

@@ -310,7 +310,7 @@ _TABLES = (
            "simulator's raw PIGE (NaN unless simulated, or not a PIGE)"))),
     TableSchema("compensation", 2, "validation pose", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "image_id"), _compensation_columns()),
-    TableSchema("verification", 3, "validation pose × phase × source", "flows/calibrate.py (fivecal calibrate)",
+    TableSchema("verification", 4, "validation pose × phase × source", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "phase", "source", "image_id"), (
         _s("image_id", "validation image"),
         _i("pose", "0-based index of the pose within its (phase, source) rows"),
@@ -332,7 +332,9 @@ _TABLES = (
            "expected tip position error norm at this phase's commands from the identified model's "
            "uncertainty alone (NaN when not propagated)"),
         _c("model_uncertainty_orientation_arcsec", "float64", "arcsec", TIP_ROTATION,
-           "the same for the orientation"))),
+           "the same for the orientation"),
+        _c("model_uncertainty_tool_direction_arcsec", "float64", "arcsec", WORKPIECE,
+           "the same for the tool direction"))),
     TableSchema("formulations", 1, "kinematic formulation (Table 5)", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "formulation"), (
         _s("formulation", "local PoE (ours) | Denavit–Hartenberg | global PoE"),

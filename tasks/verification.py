@@ -99,17 +99,19 @@ Parts = dict[tuple[str, str], tuple[list[str], pd.DataFrame]]
 
 
 def with_model_uncertainty(parts: Parts, image_ids: list[str], commands: dict[str, np.ndarray], expected) -> Parts:
-    """``parts`` of :func:`verification_table` with the columns model_uncertainty_position_um and
-    model_uncertainty_orientation_arcsec: ``expected(commands)`` -> (µm (N,), arcsec (N,)), e.g.
+    """``parts`` of :func:`verification_table` with the columns model_uncertainty_position_um,
+    model_uncertainty_orientation_arcsec and model_uncertainty_tool_direction_arcsec:
+    ``expected(commands)`` -> (µm (N,), arcsec (N,), arcsec (N,)), e.g.
     :func:`tasks.identification.uncertainty.expected_tip_errors`, at each phase's commands
     ({phase: (N, 5)} in the order of ``image_ids``), kept for the image_ids of each part."""
     per_phase = {phase: expected(c) for phase, c in commands.items()}
     out = {}
     for (phase, source), (ids, df) in parts.items():
         keep = np.isin(image_ids, ids)
-        pos, ori = per_phase[phase]
+        pos, ori, tool = per_phase[phase]
         out[(phase, source)] = (ids, df.assign(model_uncertainty_position_um=pos[keep],
-                                               model_uncertainty_orientation_arcsec=ori[keep]))
+                                               model_uncertainty_orientation_arcsec=ori[keep],
+                                               model_uncertainty_tool_direction_arcsec=tool[keep]))
     return out
 
 

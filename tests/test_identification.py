@@ -190,6 +190,40 @@ def test_noise_floor_propagates_tilt_noise_with_the_tip_lever_arm():
     assert tool_direction_noise_floor(tip, spin)[0] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_expected_tip_errors_are_the_tip_changes_the_model_uncertainty_makes(machine, errors):
+    """One camera re-fit and no noise draws: the expected errors are exactly how far that model moves
+    the tip from the identified one, by the verification's own measures (position, whole rotation,
+    tool direction); a re-fit that only spins the tip about the tool axis leaves the tool direction."""
+    from tasks.identification.uncertainty import PropagatedUncertainty, expected_tip_errors
+    from tasks.verification import tip_errors_with_tool_direction
+
+    commands = _measurements(machine, plan_campaign(machine, SMALL, 5)[0]).stage("validation").commands
+    moved = replace(errors, pige={**errors.pige, "beta_AY": errors.pige["beta_AY"] + 20 * ARCSEC,
+                                  "alpha_CX": errors.pige["alpha_CX"] - 15 * ARCSEC,
+                                  "delta_CY": errors.pige["delta_CY"] + 3e-3})
+
+    def expected(model):
+        prop = PropagatedUncertainty(names=[], fit=np.zeros(0), camera=np.zeros(0), by_camera={}, noise=np.zeros(0),
+                                     camera_models=[model], noise_models=[])
+        return expected_tip_errors(machine, errors, prop, commands)
+
+    pos, ori, tool = expected(moved)
+    exact = tip_errors_with_tool_direction(forward(machine, commands, moved).tool_in_workpiece(),
+                                           forward(machine, commands, errors).tool_in_workpiece())
+    np.testing.assert_allclose(pos, exact.position_um, rtol=1e-6)
+    np.testing.assert_allclose(ori, exact.orientation_arcsec, rtol=1e-4)
+    np.testing.assert_allclose(tool, exact.tool_direction_arcsec, rtol=1e-3, atol=1e-3)
+    assert tool.mean() > 5.0 and (tool <= ori + 1e-9).all()
+
+    # a tip mounting error about its own z, the tool axis: a spin only
+    tip = np.asarray(errors.attachment_offsets.get("tip", np.zeros(6)), dtype=float)
+    spun = replace(errors, attachment_offsets={**errors.attachment_offsets,
+                                               "tip": tip + np.array([0, 0, 0, 0, 0, 30 * ARCSEC])})
+    _, ori_spun, tool_spun = expected(spun)
+    assert ori_spun == pytest.approx(np.full(len(commands), 30.0), rel=1e-3)
+    assert tool_spun.max() < 1e-3
+
+
 def test_the_smoother_chooses_scipys_roughness_and_gives_its_fit():
     """tasks.identification.smoothing evaluates GCV in closed form; the λ and the fitted values are
     scipy's make_smoothing_spline's (its GCV) to the tolerance of the λ search."""

@@ -181,11 +181,13 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
 
 
 def expected_tip_errors(machine: Machine, model: ErrorModel, prop: PropagatedUncertainty,
-                        commands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Expected tip error norms (µm, arcsec) (N,), (N,) at ``commands`` (N, 5) from the identified
-    model's uncertainty alone: the rms change of the modelled tip pose (workpiece frame) over the
-    camera directions (summed) and the noise draws (variance). After compensation this is what the
-    tip would miss by if the model were right but for its uncertainty."""
+                        commands: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Expected tip error norms (µm, arcsec, arcsec) (N,) ×3 at ``commands`` (N, 5) from the
+    identified model's uncertainty alone: position, whole orientation and tool direction, the rms
+    change of the modelled tip pose (workpiece frame; rotation in the tip frame, whose z is the
+    tool axis, so the tool direction is its x and y) over the camera directions (summed) and the
+    noise draws (variance). After compensation this is what the tip would miss by if the model were
+    right but for its uncertainty."""
     def tip(m: ErrorModel) -> np.ndarray:
         return forward(machine, commands, m).tool_in_workpiece()
 
@@ -201,4 +203,5 @@ def expected_tip_errors(machine: Machine, model: ErrorModel, prop: PropagatedUnc
         var += change(m) ** 2
     if len(prop.noise_models) >= 2:
         var += np.var(np.array([change(m) for m in prop.noise_models]), axis=0, ddof=1)
-    return np.sqrt(var[:, :3].sum(axis=1)) / UM, np.sqrt(var[:, 3:].sum(axis=1)) / ARCSEC
+    return (np.sqrt(var[:, :3].sum(axis=1)) / UM, np.sqrt(var[:, 3:].sum(axis=1)) / ARCSEC,
+            np.sqrt(var[:, 3:5].sum(axis=1)) / ARCSEC)

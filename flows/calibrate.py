@@ -33,7 +33,7 @@ from tasks.calibration_steps import (
     propagate_task,
     report_task,
 )
-from tasks.compensation import compensation_table, desired_tip_poses
+from tasks.compensation import check_objective, compensation_table, desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
 from tasks.effects import load_effect_modules, parse_effect
 from tasks.error_model import ErrorModel
@@ -101,6 +101,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     orientation: the compensation's orientation objective (``tasks.compensation.ORIENTATION_OBJECTIVES``:
     "full", the seed's whole tip rotation, or "tool-axis", the tool direction exactly); changing it
     re-runs the compensation, the verification capture and the report."""
+    check_objective(orientation)  # before the image work and the fit, not after them
     logger = get_run_logger()
     load_effect_modules(effect_modules or [])
     base = ErrorModel(effects=[parse_effect(s) for s in effects or []])

@@ -194,7 +194,7 @@ def test_serve_recalibration_serves_the_flow_on_its_cron(prefect_harness, tmp_pa
     assert recalibrate.recalibrate_new_campaigns.validate_parameters(p)
     unknown = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "0 2 * * *",
                                        "--orientation", "spin"])
-    assert unknown.exit_code == 2 and "full, tool-axis" in unknown.output
+    assert unknown.exit_code == 2 and "full, tool-axis" in " ".join(unknown.output.replace("│", " ").split())
     bad = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "61 2 * * *"])
     assert bad.exit_code == 2 and "not a valid cron schedule" in " ".join(bad.output.replace("│", " ").split())
 

@@ -54,6 +54,13 @@ def check_objective(orientation: str) -> str:
     return orientation
 
 
+def requested_objective(pose_objectives) -> str:
+    """The objective a compensation was asked for, from its per-pose labels (:attr:`Compensation.objective`,
+    the ``compensation`` table's ``orientation_objective``): "full" when every pose says exactly that,
+    "tool-axis" otherwise (a pose that fell back from tool-axis says so in its label)."""
+    return "full" if all(str(o) == "full" for o in pose_objectives) else "tool-axis"
+
+
 def desired_tip_poses(machine: Machine, commands: np.ndarray) -> np.ndarray:
     """(N, 4, 4) tip poses in the workpiece frame (mm) that the nominal machine reaches at ``commands``."""
     return forward(machine, commands).tool_in_workpiece()

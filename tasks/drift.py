@@ -51,6 +51,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pandas as pd
 
+from tasks.compensation import requested_objective
+
 PDGE_COMPONENTS = {"dx_um": ("dx", "um"), "dy_um": ("dy", "um"), "dz_um": ("dz", "um"),
                    "ex_arcsec": ("ex", "arcsec"), "ey_arcsec": ("ey", "arcsec"), "ez_arcsec": ("ez", "arcsec")}
 PDGE_STATISTICS = ("mean", "std", "max")
@@ -282,9 +284,9 @@ def campaign_objectives(compensation: pd.DataFrame) -> pd.Series:
     also for partitions written before the column existed."""
     if compensation.empty or "campaign_id" not in compensation:
         return pd.Series(dtype=object, name="orientation_objective")
-    labels = compensation.get("orientation_objective", pd.Series("full", index=compensation.index))
-    asked = labels.fillna("full").astype(str).ne("full").groupby(compensation["campaign_id"].astype(str)).any()
-    return asked.map({True: "tool-axis", False: "full"}).rename("orientation_objective")
+    labels = compensation.get("orientation_objective", pd.Series("full", index=compensation.index)).fillna("full")
+    return labels.groupby(compensation["campaign_id"].astype(str)).agg(requested_objective).rename(
+        "orientation_objective")
 
 
 def verification_summary(verification: pd.DataFrame, compensation: pd.DataFrame | None = None) -> pd.DataFrame:

@@ -1,7 +1,7 @@
 """Simulated camera images of a dot calibration plate.
 
 The renderer traces, for every pixel centre that lies near an edge, the (undistorted) ray back
-to the plate plane and computes the area of the pixel covered by the dot / the plate, so that
+to the plate plane and integrates the optically blurred dot / plate edge over the pixel, so that
 a noiseless, in-focus dot rendered near-frontally has its intensity centroid at the projection
 of its 3D centre (the only remaining bias being the true optics: perspective and distortion of
 the dot's finite size).
@@ -24,10 +24,12 @@ Pipeline of :func:`render_plate_image`
 2. The image is cut into ``TILE_PX``×``TILE_PX`` tiles.  Tiles that are provably uniform
    (inside a dot, on bare plate, or off the plate) get one value; only tiles within reach of a
    dot edge or a plate edge are rendered per pixel: ray → plate point → signed distance to the
-   edge (mm) → pixels via the local Jacobian → exact area coverage of the pixel square by a
-   straight edge (the box-filter of a half-plane).
-3. Optical blur: Gaussian with σ² = base² + (CoC/2.355)², CoC from the thin-lens model at the
-   depth of the plate point seen by each pixel (spatially varying: a few σ levels blended).
+   edge (mm) → pixels via the local Jacobian → the pixel-square integral of the edge blurred by
+   a Gaussian of σ ≤ ``ANALYTIC_BLUR_MAX_PX`` (closed form; σ = 0 is the exact area coverage).
+3. Optical blur: Gaussian with σ² = aberration² + diffraction² + (CoC/2.355)², CoC from the
+   thin-lens model at the depth of the plate point seen by each pixel.  Up to
+   ``ANALYTIC_BLUR_MAX_PX`` it is already in the edges (step 2); the rest is a sampled Gaussian
+   (spatially varying: a few σ levels blended).
 4. Gain: cos⁴-like vignetting × linear illumination gradient.
 5. Noise: Gaussian with variance read² + level/gain (read noise + Gaussian approximation of
    shot noise; deviates by 16-bit inverse-CDF lookup), then rounding and clipping to uint8.
@@ -58,6 +60,13 @@ _BLUR_STRIP_TILES = 8
 
 MAX_BLUR_SIGMA_PX = 50.0
 """Blur σ is capped here (px): only reached for a plate almost touching the lens."""
+
+ANALYTIC_BLUR_MAX_PX = 1.5
+"""Blur up to this σ (px) is rendered into each edge pixel analytically, as the pixel integral of
+the blurred edge (:func:`_blurred_edge_coverage`); only the rest, √(σ² − 1.5²), is a sampled
+Gaussian over the image.  Box coverages blurred by a sampled kernel of σ ≲ 1 px have a shape
+that changes with the edge's sub-pixel phase, which a detector reads as a shift that locks to
+the pixel grid; past 1.5 px a sampled kernel on an already smooth image is exact enough."""
 
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))  # 2.3548...
 
@@ -90,7 +99,10 @@ class ImagingConditions:
     shot_noise_gain_e_per_dn: electrons per DN.  Shot noise variance = level / gain (DN²);
         ``None`` or ≤ 0 disables shot noise.  Drawn as Gaussian (Poisson is Gaussian at these
         counts): one standard normal per pixel from :func:`standard_normal_image`.
-    base_blur_sigma_px: Gaussian σ (px) of the in-focus optics (diffraction, aberrations).
+    aberration_sigma_px: Gaussian σ (px) of the lens aberrations at focus.
+    diffraction: add the diffraction blur of the aperture, :func:`diffraction_sigma_px` at
+        ``wavelength_um``.
+    wavelength_um: wavelength of the (narrow-band) illumination (µm).
     defocus: apply thin-lens defocus blur from ``CameraModel.focus_distance_mm``, ``f_number``
         and ``focal_length_mm``.  The circle of confusion diameter c (px) is turned into a
         Gaussian σ = c · ``coc_sigma_per_diameter`` (default 1/2.355: FWHM = c).
@@ -109,13 +121,15 @@ class ImagingConditions:
     gradient_angle_deg: float = 0.0
     read_noise_dn: float = 1.5
     shot_noise_gain_e_per_dn: float | None = 20.0
-    base_blur_sigma_px: float = 0.6
+    aberration_sigma_px: float = 0.6
+    diffraction: bool = True
+    wavelength_um: float = 0.55
     defocus: bool = True
     coc_sigma_per_diameter: float = 1.0 / FWHM_PER_SIGMA
 
     @classmethod
     def ideal(cls, **overrides) -> ImagingConditions:
-        """No vignetting, no gradient, no noise; base blur and defocus kept (override freely)."""
+        """No vignetting, no gradient, no noise; the optical blur kept (override freely)."""
         kw: dict = {
             "vignetting": 0.0,
             "gradient": 0.0,
@@ -436,52 +450,80 @@ def circle_of_confusion_px(camera: CameraModel, depth_mm: np.ndarray | float) ->
     return A * f / (sf - f) * np.abs(z - sf) / z / camera.pixel_size_mm
 
 
+def diffraction_sigma_px(camera: CameraModel, wavelength_um: float) -> float:
+    """σ (px) of the Gaussian that best fits the in-focus Airy pattern of the camera's aperture.
+
+    σ = 0.42 λ N_w (Zhang, Zerubia & Olivo-Marin 2007), with the working f-number
+    N_w = N · s_f / (s_f − f) of a lens focused at s_f (the image lies behind the focal plane);
+    λ in µm, divided by the pixel pitch.  The 16 mm f/8 lens with 2.4 µm pixels gives 0.81 px
+    focused at 300 mm, 0.96 px at 80 mm.
+    """
+    f = camera.focal_length_mm
+    sf = camera.focus_distance_mm
+    n_working = camera.f_number * sf / (sf - f)
+    return 0.42 * wavelength_um * 1e-3 * n_working / camera.pixel_size_mm
+
+
 def blur_sigma_px(camera: CameraModel, conditions: ImagingConditions, depth_mm) -> np.ndarray:
-    """Total Gaussian σ (px) at object depth Z (mm): sqrt(base² + (CoC · coc_sigma_per_diameter)²)."""
-    s2 = np.full(np.shape(depth_mm), conditions.base_blur_sigma_px**2)
+    """Total Gaussian σ (px) at object depth Z (mm): √(aberration² + diffraction² + defocus²),
+    defocus σ = CoC · ``coc_sigma_per_diameter``."""
+    s0 = conditions.aberration_sigma_px**2
+    if conditions.diffraction:
+        s0 += diffraction_sigma_px(camera, conditions.wavelength_um) ** 2
+    s2 = np.full(np.shape(depth_mm), s0)
     if conditions.defocus:
         s2 = s2 + (circle_of_confusion_px(camera, depth_mm) * conditions.coc_sigma_per_diameter) ** 2
     return np.sqrt(s2)
 
 
-def _edge_coverage(t_in: np.ndarray, gu: np.ndarray, gv: np.ndarray) -> np.ndarray:
-    """Fraction of a unit pixel square on the inner side of a straight edge (float32).
+def _blurred_edge_coverage(t_in: np.ndarray, gu: np.ndarray, gv: np.ndarray, sigma_px) -> np.ndarray:
+    """Pixel average of a Gaussian-blurred straight edge: what a sensor pixel records (float32).
 
     t_in: signed distance (px) from the pixel centre to the edge, positive inside.
     gu, gv: components of the edge normal in pixel axes (any length; only |gu|:|gv| matters).
-    The area is the CDF of U(−a/2, a/2) + U(−b/2, b/2) at t_in, with a ≥ b the components of
-    the unit normal: linear in the middle, quadratic near the ends; exact for a straight edge
-    (it is the pixel box filter applied to a half-plane).
+    sigma_px: Gaussian blur σ (px) of the optics, scalar or per pixel; 0 gives the exact area
+        coverage of the pixel square (the box filter of a half-plane).
+    Returns E[Φ((t_in + p·U₁ + q·U₂)/σ)] with U uniform on (−½, ½) and (p, q) the components of
+    the unit normal: the pixel-box integral of the blurred edge, from second antiderivatives of
+    Φ (closed form, float64).  Rendering it directly, instead of blurring box coverages with a
+    sampled kernel, keeps the edge's shape independent of its sub-pixel phase.
     """
-    ax = np.abs(gu, dtype=np.float32)
-    ay = np.abs(gv, dtype=np.float32)
-    inv_n = np.hypot(ax, ay)
-    np.maximum(inv_n, np.float32(1e-30), out=inv_n)
-    np.divide(np.float32(1.0), inv_n, out=inv_n)
-    lo = np.maximum(ax, ay)
-    lo *= inv_n
-    np.maximum(lo, np.float32(0.70710677), out=lo)  # a unit vector's larger component; guards g = 0
-    sm = np.minimum(ax, ay, out=ax)
-    sm *= inv_n
-    sm += np.float32(1e-6)
-    u = np.abs(t_in, dtype=np.float32)
-    c2 = lo + sm
-    c2 *= np.float32(0.5)
-    q = np.subtract(c2, u, out=c2)  # c2 - u
-    lin = np.subtract(q, sm, out=ay)  # c1 - u
-    np.maximum(lin, np.float32(0.0), out=lin)
-    lin /= lo
-    np.minimum(q, sm, out=q)
-    np.maximum(q, np.float32(0.0), out=q)
-    q *= q
-    lo *= sm
-    lo *= np.float32(2.0)
-    q /= lo
-    q += lin  # area on the far side of the edge
-    far = q
-    inside = t_in >= 0
-    np.subtract(np.float32(1.0), far, out=far, where=inside)
-    return far
+    from scipy.special import ndtr
+
+    t = np.asarray(t_in, dtype=np.float64)
+    ax = np.abs(np.broadcast_to(np.asarray(gu, dtype=np.float64), t.shape))
+    ay = np.abs(np.broadcast_to(np.asarray(gv, dtype=np.float64), t.shape))
+    s = np.maximum(np.broadcast_to(np.asarray(sigma_px, dtype=np.float64), t.shape), 1e-9)
+    # only the transition band needs the closed form: beyond ½(p + q) + 6σ it is 0 or 1 (< 1e-9)
+    out = (t > 0).astype(np.float32)
+    band = np.abs(t) < 0.75 + 6.0 * s  # ½(p + q) ≤ 1/√2
+    t, ax, ay, s = t[band], ax[band], ay[band], s[band]
+    norm = np.maximum(np.hypot(ax, ay), 1e-30)
+    p = np.maximum(np.maximum(ax, ay) / norm, math.sqrt(0.5))  # larger component; guards g = 0
+    q = np.minimum(ax, ay) / norm
+    inv_sqrt_2pi = 1.0 / math.sqrt(2.0 * math.pi)
+
+    def first(x, s):  # ∫ Φ(x/σ) dx
+        z = x / s
+        return x * ndtr(z) + s * inv_sqrt_2pi * np.exp(-0.5 * z * z)
+
+    def second(x, s):  # ∫∫ Φ(x/σ) dx dx
+        z = x / s
+        return 0.5 * ((x * x + s * s) * ndtr(z) + x * s * inv_sqrt_2pi * np.exp(-0.5 * z * z))
+
+    value = np.empty_like(t)
+    thin = q < 1e-3  # the 1-D formula: the 2-D one cancels catastrophically as q → 0
+    k = np.nonzero(thin)[0]
+    if k.size:
+        tk, pk, sk = t[k], p[k], s[k]
+        value[k] = (first(tk + pk / 2, sk) - first(tk - pk / 2, sk)) / pk
+    k = np.nonzero(~thin)[0]
+    if k.size:
+        tk, pk, qk, sk = t[k], p[k], q[k], s[k]
+        value[k] = (second(tk + (pk + qk) / 2, sk) - second(tk + (pk - qk) / 2, sk)
+                    - second(tk - (pk - qk) / 2, sk) + second(tk - (pk + qk) / 2, sk)) / (pk * qk)
+    out[band] = np.clip(value, 0.0, 1.0)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -621,7 +663,13 @@ def render_scene(
     dYdu = 0.5 * ((c01[1] - c00[1]) + (c11[1] - c10[1])) / Tp
     dXdv = 0.5 * ((c10[0] - c00[0]) + (c11[0] - c01[0])) / Tp
     dYdv = 0.5 * ((c10[1] - c00[1]) + (c11[1] - c01[1])) / Tp
-    reach = 1.1 * rho + 1.5 * np.sqrt(dXdu**2 + dYdu**2 + dXdv**2 + dYdv**2) + 1e-9
+    # σ (px) rendered analytically into the edges: per tile, the largest at its corners
+    Z_nodes = np.where(np.isfinite(NZ), NZ, camera.focus_distance_mm)
+    s_nodes = blur_sigma_px(camera, conditions, Z_nodes) if blur else np.zeros_like(Z_nodes)
+    s_tile = np.minimum(np.maximum.reduce([s_nodes[:-1, :-1], s_nodes[:-1, 1:], s_nodes[1:, :-1], s_nodes[1:, 1:]]),
+                        ANALYTIC_BLUR_MAX_PX)
+    edge_reach_px = 1.5 + 4.0 * s_tile  # the pixel's half-diagonal and the blur's tails
+    reach = 1.1 * rho + edge_reach_px * np.sqrt(dXdu**2 + dYdu**2 + dXdv**2 + dYdv**2) + 1e-9
 
     valid = np.isfinite(PX) & np.isfinite(reach)
     any_valid = (
@@ -654,35 +702,44 @@ def render_scene(
 
     ti, tj = np.nonzero(fine)
     if ti.size:
-        X, Y, _ = to_plate(grid.tiles(ti, tj))  # (N, T, T) mm, NaN where the ray misses
+        X, Y, Zp = to_plate(grid.tiles(ti, tj))  # (N, T, T) mm, NaN where the ray misses
         ok = np.isfinite(X)
         all_ok = bool(ok.all())
         if not all_ok:
             X[~ok] = 0.0
             Y[~ok] = 0.0
+            Zp[~ok] = camera.focus_distance_mm
+        if blur:
+            sigma = np.minimum(blur_sigma_px(camera, conditions, Zp), ANALYTIC_BLUR_MAX_PX)
+        else:
+            sigma = np.zeros(X.shape)
         J = np.clip(np.nan_to_num(np.stack([dXdu, dYdu, dXdv, dYdv])[:, ti, tj]), -1e6, 1e6)
         J = J.astype(np.float32)[:, :, None, None]  # 4 × (N, 1, 1), mm/px (clipped: grazing views)
 
-        def coverage(sub, d_mm, nx, ny):
-            """Pixel coverage of the inner side of an edge at signed distance d_mm (mm, positive
-            outside) with outward normal (nx, ny) (plate axes, any length) for tiles ``sub``."""
+        def coverage(sub, d_mm, nx, ny, radius_mm=None):
+            """Pixel value (0–1) of the inner side of an edge at signed distance d_mm (mm,
+            positive outside) with outward normal (nx, ny) (plate axes, any length) for tiles
+            ``sub``, blurred by the tiles' analytic σ.  ``radius_mm``: the edge is a circle of
+            this radius; blurring moves it inwards by σ²/(2ρ) (ρ: its radius in px)."""
             jxu, jyu, jxv, jyv = J[:, sub]
             gu = jxu * nx + jyu * ny  # ∇_uv d · |n|  (chain rule, J^T n)
             gv = jxv * nx + jyv * ny
-            gn = np.hypot(gu, gv)
+            gn = np.maximum(np.hypot(gu, gv), np.float32(1e-30))
             nn = np.hypot(nx, ny)
             # d_px = d_mm / |J^T n̂| = d_mm · |n| / |J^T n|
-            t_in = d_mm * nn
-            t_in /= np.maximum(gn, np.float32(1e-30))
-            np.negative(t_in, out=t_in)
-            return _edge_coverage(t_in, gu, gv)
+            t_in = -d_mm * nn / gn
+            s = sigma[sub]
+            if radius_mm is not None:
+                t_in = t_in - s * s * gn / (2.0 * radius_mm * np.maximum(nn, np.float32(1e-30)))
+            return _blurred_edge_coverage(t_in, gu, gv, s)
 
         dc = np.broadcast_to(in_dot[ti, tj].astype(np.float32)[:, None, None], X.shape).copy()
         sub = np.nonzero(dot_near[ti, tj])[0]
         if sub.size:
             dx, dy, dist = _nearest_dot_distance(X[sub], Y[sub], plate)
             dx[dist == 0.0] = 1.0  # any direction will do at the exact centre
-            dc[sub] = coverage(sub, (dist - R).astype(np.float32), dx.astype(np.float32), dy.astype(np.float32))
+            dc[sub] = coverage(sub, (dist - R).astype(np.float32), dx.astype(np.float32), dy.astype(np.float32),
+                               radius_mm=R)
         pc = np.ones_like(dc)
         if finite:
             sub = np.nonzero(edge_near[ti, tj] | ~ok.all(axis=(1, 2)))[0]
@@ -707,6 +764,8 @@ def _gaussian_blur(src: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian blur (σ px, reflecting borders).  For σ ≥ 4 the work is done on a ``f``× block-
     averaged copy (f = 2^⌊log2(σ/2)⌋) and linearly upsampled, with the blur reduced so that
     box + Gaussian + tent variances add up to σ² (first moments exact, σ within ~5 %)."""
+    if sigma <= 0.0:
+        return src.copy()
     if sigma < 4.0:
         return cv2.GaussianBlur(src, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     f = 2 ** math.floor(math.log2(sigma / 2.0))
@@ -725,7 +784,8 @@ def _gaussian_blur(src: np.ndarray, sigma: float) -> np.ndarray:
 def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
     """Blur ``canvas`` in place where it is not locally uniform (near ``fine`` tiles).
 
-    σ (px) is evaluated from the plate depth at the tile corners (:func:`blur_sigma_px`).  If it
+    σ (px) is what the edges do not already carry, √(σ_total² − ``ANALYTIC_BLUR_MAX_PX``²), with
+    σ_total from the plate depth at the tile corners (:func:`blur_sigma_px`).  If it
     is uniform to 2 % over the region, one Gaussian; otherwise levels spaced by ×1.25 in σ,
     each blurring only the tiles that need it, blended per pixel linearly in σ² (so the blended
     kernel has exactly the local variance).
@@ -735,6 +795,7 @@ def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
     focus = camera.focus_distance_mm
     Z = np.where(np.isfinite(NZ), NZ, focus)
     s2n = np.minimum(blur_sigma_px(camera, conditions, Z), MAX_BLUR_SIGMA_PX) ** 2  # σ² at tile corners
+    s2n = np.maximum(s2n - ANALYTIC_BLUR_MAX_PX**2, 0.0)  # what the analytic edges lack
     smax_all = float(np.sqrt(s2n.max()))
     if smax_all < 1e-3:
         return
@@ -766,8 +827,11 @@ def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
     t_hi = np.sqrt(np.maximum(np.maximum(t00, t01), np.maximum(t10, t11)))
     s_lo, s_hi = float(t_lo.min()), float(t_hi.max())
     ratio = 1.25
-    n = math.ceil(math.log(s_hi / max(s_lo, 1e-3)) / math.log(ratio)) + 1
-    levels = np.geomspace(max(s_lo, 1e-3), s_hi, max(n, 2))
+    s_first = max(s_lo, 0.25)  # below this, blend with no blur at all (level σ = 0)
+    n = math.ceil(math.log(max(s_hi, s_first * ratio) / s_first) / math.log(ratio)) + 1
+    levels = np.geomspace(s_first, max(s_hi, s_first * ratio), max(n, 2))
+    if s_lo < s_first:
+        levels = np.concatenate([[0.0], levels])
     L2 = (levels**2).astype(np.float32)
     # per-pixel σ², bilinear between the tile corners: (N_active, T, T)
     f = ((np.arange(Tp) + 0.5) / Tp).astype(np.float32)
@@ -779,7 +843,7 @@ def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
     np.clip(s2p, L2[0], L2[-1], out=s2p)
     out = np.zeros((ai.size, Tp, Tp), np.float32)
     for k, sk in enumerate(levels):
-        lo_k = levels[k - 1] if k > 0 else 0.0
+        lo_k = levels[k - 1] if k > 0 else -np.inf
         hi_k = levels[k + 1] if k + 1 < levels.size else np.inf
         sel = np.nonzero((t_hi > lo_k) & (t_lo < hi_k))[0]
         if not sel.size:

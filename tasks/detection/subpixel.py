@@ -40,6 +40,7 @@ from tasks.detection.conics import (
     ransac_ellipse,
     sampson_distance,
 )
+from tasks.detection.edge_fit import fit_dot_edges
 
 INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
 
@@ -63,6 +64,7 @@ class SubpixelParams:
     refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this
     blur_curvature_correction: bool = True
     flat_field: bool = True  # divide the profiles by the image's gain field (see module docstring)
+    pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.detection.edge_fit)
 
 
 @dataclass
@@ -529,6 +531,13 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
         todo = todo[okp & (oblique > p.refine_bias_px)]
         if len(todo) == 0:
             break
+    if p.pixel_edge_fit and ok.any():
+        t0 = clock()
+        sel = np.flatnonzero(ok)
+        edges = fit_dot_edges(image, cen[sel], axs[sel], ths[sel], s_med[sel])
+        use = sel[edges.ok]
+        cen[use], axs[use], ths[use] = edges.centres[edges.ok], edges.axes[edges.ok], edges.theta[edges.ok]
+        t_fit += clock() - t0
     if timings is not None:
         timings["ellipse_fitting"] = timings.get("ellipse_fitting", 0.0) + t_fit
         timings["rim_sampling"] = timings.get("rim_sampling", 0.0) + clock() - t_begin - t_fit

@@ -6,7 +6,7 @@ shape depends on where the edge falls between pixel centres, so each rim point i
 amount that repeats every pixel (pixel locking). Across a plate the phase advances by a fixed
 fraction of a pixel per dot, and the errors form a smooth ramp that a pose estimate reads as a
 tilt. On noise-free renders of the full-size campaign's X sweep, the rim fit's tilt errs by up
-to 7″ at a position (0.0013 px RMS centre error); this fit, by 1.7″ (0.0008 px).
+to 7″ at a position (0.0013 px RMS centre error); after this fit, by 1.5″ (0.0008 px).
 
 The model of one dot's image, per pixel centre p (px):
 

@@ -20,7 +20,9 @@ contours:
   rays of the image, and every profile is divided by it before the step fits.
 
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
-the ellipse centre. Units: px of the full-size image unless a name says ``level``; ray angles in
+the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
+themselves (:mod:`tasks.detection.edge_fit`): the rays' interpolation locks sharp rims to the
+pixel grid. Units: px of the full-size image unless a name says ``level``; ray angles in
 rad from +u towards +v.
 """
 

@@ -37,7 +37,7 @@ Pipeline of :func:`render_plate_image`
 Gain is applied after the blur: it varies slowly, so the order changes nothing measurable.
 Plates seen from behind render blank (no dots); exactly edge-on, not at all.
 
-No Prefect import here: numpy + OpenCV only.
+No Prefect import here: numpy, SciPy (the normal CDF) and OpenCV only.
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+from scipy.special import ndtr
 
 from tasks.camera_model import CameraModel, distort_normalised, project_points
 from tasks.plate import DotPlate
@@ -488,8 +489,6 @@ def _blurred_edge_coverage(t_in: np.ndarray, gu: np.ndarray, gv: np.ndarray, sig
     Φ (closed form, float64).  Rendering it directly, instead of blurring box coverages with a
     sampled kernel, keeps the edge's shape independent of its sub-pixel phase.
     """
-    from scipy.special import ndtr
-
     t = np.asarray(t_in, dtype=np.float64)
     ax = np.abs(np.broadcast_to(np.asarray(gu, dtype=np.float64), t.shape))
     ay = np.abs(np.broadcast_to(np.asarray(gv, dtype=np.float64), t.shape))
@@ -665,7 +664,7 @@ def render_scene(
     dYdv = 0.5 * ((c10[1] - c00[1]) + (c11[1] - c01[1])) / Tp
     # σ (px) rendered analytically into the edges: per tile, the largest at its corners
     Z_nodes = np.where(np.isfinite(NZ), NZ, camera.focus_distance_mm)
-    s_nodes = blur_sigma_px(camera, conditions, Z_nodes) if blur else np.zeros_like(Z_nodes)
+    s_nodes = blur_sigma_px(camera, conditions, Z_nodes) if blur else np.zeros_like(Z_nodes)  # total σ
     s_tile = np.minimum(np.maximum.reduce([s_nodes[:-1, :-1], s_nodes[:-1, 1:], s_nodes[1:, :-1], s_nodes[1:, 1:]]),
                         ANALYTIC_BLUR_MAX_PX)
     edge_reach_px = 1.5 + 4.0 * s_tile  # the pixel's half-diagonal and the blur's tails
@@ -756,7 +755,7 @@ def render_scene(
         tv[ti, tj] = dc
 
     if blur:
-        _apply_blur(canvas, fine, NZ, camera, conditions, Tp)
+        _apply_blur(canvas, fine, s_nodes, Tp)
     return canvas[: camera.height_px, : camera.width_px]
 
 
@@ -781,20 +780,18 @@ def _gaussian_blur(src: np.ndarray, sigma: float) -> np.ndarray:
     return big[:h, :w]
 
 
-def _apply_blur(canvas, fine, NZ, camera, conditions, Tp):
+def _apply_blur(canvas, fine, s_nodes, Tp):
     """Blur ``canvas`` in place where it is not locally uniform (near ``fine`` tiles).
 
     σ (px) is what the edges do not already carry, √(σ_total² − ``ANALYTIC_BLUR_MAX_PX``²), with
-    σ_total from the plate depth at the tile corners (:func:`blur_sigma_px`).  If it
+    σ_total (``s_nodes``) from the plate depth at the tile corners (:func:`blur_sigma_px`).  If it
     is uniform to 2 % over the region, one Gaussian; otherwise levels spaced by ×1.25 in σ,
     each blurring only the tiles that need it, blended per pixel linearly in σ² (so the blended
     kernel has exactly the local variance).
     """
     if not fine.any():
         return
-    focus = camera.focus_distance_mm
-    Z = np.where(np.isfinite(NZ), NZ, focus)
-    s2n = np.minimum(blur_sigma_px(camera, conditions, Z), MAX_BLUR_SIGMA_PX) ** 2  # σ² at tile corners
+    s2n = np.minimum(s_nodes, MAX_BLUR_SIGMA_PX) ** 2  # σ² at tile corners
     s2n = np.maximum(s2n - ANALYTIC_BLUR_MAX_PX**2, 0.0)  # what the analytic edges lack
     smax_all = float(np.sqrt(s2n.max()))
     if smax_all < 1e-3:

@@ -27,11 +27,12 @@ s²/(2√(ab)).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr
+
+from tasks.detection.stats import masked_median
 
 N_PARAMS = 10  # cx, cy, a, b, θ, L_in, L_out, s, g_u, g_v
 
@@ -94,7 +95,8 @@ def dot_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, *, with_jacobian
     d, dd = out if with_jacobian else (out, None)
     gain = 1.0 + gu * (x - cx) + gv * (y - cy)
     z = -d / s
-    level = l_out + (l_in - l_out) * ndtr(z)
+    p_in = ndtr(z)
+    level = l_out + (l_in - l_out) * p_in
     value = gain * level
     if not with_jacobian:
         return value
@@ -105,7 +107,6 @@ def dot_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, *, with_jacobian
         jac[..., j] = di_dd * dd[j]
     jac[..., 0] -= gu * level
     jac[..., 1] -= gv * level
-    p_in = ndtr(z)
     jac[..., 5] = gain * p_in
     jac[..., 6] = gain * (1.0 - p_in)
     jac[..., 7] = dens * d / (s * s)
@@ -163,8 +164,8 @@ def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, thet
     d0 = signed_distance(x, y, centres[idx, 0, None], centres[idx, 1, None], axes[idx, 0, None],
                          axes[idx, 1, None], theta[idx, None])
     far = (2.0 * s0 + 1.0)[:, None]
-    l_in = _masked_median(z, mask & (d0 < -far))
-    l_out = _masked_median(z, mask & (d0 > far))
+    l_in = masked_median(z, mask & (d0 < -far))
+    l_out = masked_median(z, mask & (d0 > far))
     q = np.column_stack([centres[idx], axes[idx], theta[idx], l_in, l_out, s0, np.zeros((idx.size, 2))])
     w = mask.astype(float)
     lam = np.full(idx.size, 1e-3)
@@ -172,7 +173,7 @@ def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, thet
     cost = (r * r).sum(axis=1)
     for it in range(p.iterations):
         if it == 3:  # drop outliers once the fit is close
-            scale = 1.4826 * _masked_median(np.abs(r), mask)
+            scale = 1.4826 * masked_median(np.abs(r), mask)
             w = (mask & (np.abs(r) <= p.outlier_sigmas * np.maximum(scale, 0.5)[:, None])).astype(float)
             r = (dot_model(q, x, y) - z) * w
             cost = (r * r).sum(axis=1)
@@ -212,11 +213,3 @@ def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, thet
     out.residual_rms[idx] = np.sqrt(cost / n_used)
     out.ok[g] = True
     return out
-
-
-def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Row medians of ``values`` over ``mask`` (NaN where a row has none)."""
-    v = np.where(mask, values, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows
-        return np.nanmedian(v, axis=1)

@@ -43,6 +43,7 @@ from tasks.detection.conics import (
     sampson_distance,
 )
 from tasks.detection.edge_fit import fit_dot_edges
+from tasks.detection.stats import masked_median
 
 INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
 
@@ -144,16 +145,6 @@ def sample_profiles(crop: Crop, centres: np.ndarray, angles: np.ndarray, t: np.n
         out[i : i + step] = cv2.remap(crop.data, mx[i : i + step], my[i : i + step], INTERP,
                                       borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(k, r, n).astype(np.float32), inside
-
-
-def masked_median(values: np.ndarray, mask: np.ndarray, default: float = np.nan) -> np.ndarray:
-    """Median along the last axis of ``values`` where ``mask`` (sort-based; NaN-free, fast)."""
-    v = np.sort(np.where(mask, values, np.inf), axis=-1)
-    n = mask.sum(axis=-1)
-    lo = np.take_along_axis(v, np.maximum((n - 1) // 2, 0)[..., None], axis=-1)[..., 0]
-    hi = np.take_along_axis(v, np.maximum(n // 2, 0)[..., None], axis=-1)[..., 0]
-    with np.errstate(invalid="ignore"):
-        return np.where(n > 0, 0.5 * (lo + hi), default)
 
 
 def robust_ellipse_fit(x, y, w, origin, scale, iterations: int = 1):

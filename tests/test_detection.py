@@ -419,3 +419,21 @@ def test_pixel_edge_fit_does_not_lock_to_the_pixel_grid():
     # the rim fit alone, for scale: the effect the pixel fit removes is real on these images
     assert min(rms[False]) > 2 * max(rms[True])
     assert np.abs(tilt[False]).max() > 8.0
+
+
+def test_pixel_edge_fit_jacobian_matches_finite_differences():
+    """The edge fit's analytic Jacobian (tasks.detection.edge_fit.dot_model) against central
+    differences, for two ellipses (one tilted, one near-circular) on pixels across the rim."""
+    from tasks.detection.edge_fit import N_PARAMS, dot_model
+
+    rng = np.random.default_rng(0)
+    q = np.array([[10.2, 11.3, 8.0, 6.5, 0.4, 30.0, 200.0, 0.9, 1e-3, -2e-3],
+                  [11.0, 10.5, 7.2, 7.1, -1.2, 40.0, 180.0, 1.3, -2e-3, 1e-3]])
+    x, y = rng.uniform(0.0, 22.0, (2, 2, 300))
+    _, jac = dot_model(q, x, y, with_jacobian=True)
+    for j in range(N_PARAMS):
+        h = 1e-6 * max(1.0, abs(q[:, j]).max())
+        dq = np.zeros_like(q)
+        dq[:, j] = h
+        numeric = (dot_model(q + dq, x, y) - dot_model(q - dq, x, y)) / (2 * h)
+        assert np.abs(numeric - jac[:, j]).max() <= 1e-6 * max(np.abs(numeric).max(), 1.0), j

@@ -76,19 +76,20 @@ def signed_distance(x, y, cx, cy, a, b, theta, *, with_gradient: bool = False):
     if not with_gradient:
         return d
     Fs = np.maximum(F, 1e-12)
-    grads = []
-    # ∂u, ∂v and the explicit ∂(1/a², 1/b²) terms of each parameter
-    for du, dv, da, db in ((-ct, st, 0, 0), (-st, -ct, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1), (v, -u, 0, 0)):
-        dF = (u / a2 * du + v / b2 * dv - da * u * u / (a2 * a) - db * v * v / (b2 * b)) / Fs
-        dgr = (u / (a2 * a2) * du + v / (b2 * b2) * dv - 2 * da * u * u / (a2 * a2 * a)
-               - 2 * db * v * v / (b2 * b2 * b)) / gr
-        grads.append(((2.0 * F - 1.0) * dF - d * dgr) / gr)
-    return d, grads
+    # ∂d through F and |∇F| with respect to u, v, a and b; (cx, cy, θ) act through u and v
+    k = (2.0 * F - 1.0) / (Fs * gr)
+    m = d / (gr * gr)
+    d_u = u * (k / a2 - m / (a2 * a2))
+    d_v = v * (k / b2 - m / (b2 * b2))
+    d_a = u * u / (a2 * a) * (2.0 * m / a2 - k)
+    d_b = v * v / (b2 * b) * (2.0 * m / b2 - k)
+    return d, [-ct * d_u + st * d_v, -st * d_u - ct * d_v, d_a, d_b, v * d_u - u * d_v]
 
 
 def dot_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, *, with_jacobian: bool = False):
     """Grey levels (DN) of the model at pixel centres x, y (K, M) for parameters (K, 10);
-    with_jacobian: also the (K, M, 10) derivatives (analytic)."""
+    with_jacobian: also the (K, 10, M) derivatives (analytic), parameter-major so that each
+    parameter's row is contiguous."""
     cx, cy, a, b, th, l_in, l_out, s, gu, gv = (params[:, i, None] for i in range(N_PARAMS))
     a, b, s = np.abs(a), np.abs(b), np.maximum(np.abs(s), 0.05)
     out = signed_distance(x, y, cx, cy, a, b, th, with_gradient=with_jacobian)
@@ -100,18 +101,18 @@ def dot_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, *, with_jacobian
     value = gain * level
     if not with_jacobian:
         return value
-    jac = np.empty((*x.shape, N_PARAMS))
+    jac = np.empty((x.shape[0], N_PARAMS, x.shape[1]))
     dens = gain * (l_in - l_out) * np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi)  # ∂I/∂z
     di_dd = -dens / s
     for j in range(5):
-        jac[..., j] = di_dd * dd[j]
-    jac[..., 0] -= gu * level
-    jac[..., 1] -= gv * level
-    jac[..., 5] = gain * p_in
-    jac[..., 6] = gain * (1.0 - p_in)
-    jac[..., 7] = dens * d / (s * s)
-    jac[..., 8] = (x - cx) * level
-    jac[..., 9] = (y - cy) * level
+        jac[:, j] = di_dd * dd[j]
+    jac[:, 0] -= gu * level
+    jac[:, 1] -= gv * level
+    jac[:, 5] = gain * p_in
+    jac[:, 6] = gain * (1.0 - p_in)
+    jac[:, 7] = dens * d / (s * s)
+    jac[:, 8] = (x - cx) * level
+    jac[:, 9] = (y - cy) * level
     return value, jac
 
 
@@ -142,6 +143,52 @@ def _band_pixels(image: np.ndarray, centres, axes, theta, sigma, p: EdgeFitParam
     return x, y, image[iy, ix].astype(float), mask
 
 
+def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, mask: np.ndarray,
+                         p: EdgeFitParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Batched LM over the dots' parameters q (K, 10) on their band pixels; returns (q, pixel weights
+    (K, M), cost (K,)). The model and its Jacobian are evaluated once per iteration, at the trial
+    point, and kept when the step is accepted; a dot whose centre step falls below 1e-5 px after
+    the outlier pass leaves the active set, so the last iterations cost only the few dots that
+    converge slowly."""
+    w = mask.astype(float)
+    lam = np.full(len(q), 1e-3)
+    value, jac = dot_model(q, x, y, with_jacobian=True)
+    r = (value - z) * w
+    cost = (r * r).sum(axis=1)
+    active = np.ones(len(q), bool)
+    for it in range(p.iterations):
+        if it == 3:  # drop outliers once the fit is close
+            scale = 1.4826 * masked_median(np.abs(r), mask)
+            w = (mask & (np.abs(r) <= p.outlier_sigmas * np.maximum(scale, 0.5)[:, None])).astype(float)
+            r = (value - z) * w
+            cost = (r * r).sum(axis=1)
+        a = np.flatnonzero(active)
+        if a.size == 0:
+            break
+        wa = w[a]
+        ja = jac[a]
+        jw = ja * wa[:, None, :]
+        jtj = jw @ ja.transpose(0, 2, 1)
+        jtr = (jw @ r[a, :, None])[..., 0]
+        diag = np.einsum("kii->ki", jtj)
+        # the floor keeps θ of a near-circular dot (no signal) from making the system singular
+        diag = np.maximum(diag, 1e-9 * diag.max(axis=1, keepdims=True))
+        lhs = jtj + (lam[a, None] * diag)[:, :, None] * np.eye(N_PARAMS) + 1e-12 * np.eye(N_PARAMS)
+        step = np.linalg.solve(lhs, -jtr[..., None])[..., 0]
+        q_new = q[a] + step
+        value_new, jac_new = dot_model(q_new, x[a], y[a], with_jacobian=True)
+        r_new = (value_new - z[a]) * wa
+        cost_new = (r_new * r_new).sum(axis=1)
+        better = np.isfinite(cost_new) & (cost_new < cost[a])
+        kept = a[better]
+        q[kept], value[kept], jac[kept] = q_new[better], value_new[better], jac_new[better]
+        r[kept], cost[kept] = r_new[better], cost_new[better]
+        lam[a] = np.where(better, lam[a] / 10.0, lam[a] * 10.0)
+        if it >= 3:  # centres settled to 0.00001 px
+            active[a[np.all(np.abs(step[:, :2]) < 1e-5, axis=1)]] = False
+    return q, w, cost
+
+
 def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
                   sigma: np.ndarray, params: EdgeFitParams | None = None) -> EdgeFits:
     """Fit each dot's ellipse to its pixels, starting from ray-fit ellipses (full-size px).
@@ -167,34 +214,7 @@ def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, thet
     l_in = masked_median(z, mask & (d0 < -far))
     l_out = masked_median(z, mask & (d0 > far))
     q = np.column_stack([centres[idx], axes[idx], theta[idx], l_in, l_out, s0, np.zeros((idx.size, 2))])
-    w = mask.astype(float)
-    lam = np.full(idx.size, 1e-3)
-    r = (dot_model(q, x, y) - z) * w
-    cost = (r * r).sum(axis=1)
-    for it in range(p.iterations):
-        if it == 3:  # drop outliers once the fit is close
-            scale = 1.4826 * masked_median(np.abs(r), mask)
-            w = (mask & (np.abs(r) <= p.outlier_sigmas * np.maximum(scale, 0.5)[:, None])).astype(float)
-            r = (dot_model(q, x, y) - z) * w
-            cost = (r * r).sum(axis=1)
-        _, jac = dot_model(q, x, y, with_jacobian=True)
-        jac *= w[:, :, None]
-        jt = jac.transpose(0, 2, 1)
-        jtj = jt @ jac
-        jtr = (jt @ r[:, :, None])[..., 0]
-        diag = np.einsum("kii->ki", jtj)
-        # the floor keeps θ of a near-circular dot (no signal) from making the system singular
-        diag = np.maximum(diag, 1e-9 * diag.max(axis=1, keepdims=True))
-        a = jtj + (lam[:, None] * diag)[:, :, None] * np.eye(N_PARAMS) + 1e-12 * np.eye(N_PARAMS)
-        step = np.linalg.solve(a, -jtr[..., None])[..., 0]
-        q_new = q + step
-        r_new = (dot_model(q_new, x, y) - z) * w
-        cost_new = (r_new * r_new).sum(axis=1)
-        better = np.isfinite(cost_new) & (cost_new < cost)
-        q[better], r[better], cost[better] = q_new[better], r_new[better], cost_new[better]
-        lam = np.where(better, lam / 10.0, lam * 10.0)
-        if it >= 3 and np.all(np.abs(step[:, :2]) < 1e-5):  # centres settled to 0.00001 px
-            break
+    q, w, cost = _levenberg_marquardt(q, x, y, z, mask, p)
     a_fit, b_fit = np.abs(q[:, 2]), np.abs(q[:, 3])
     s_fit = np.abs(q[:, 7])
     shift = np.linalg.norm(q[:, :2] - centres[idx], axis=1)

@@ -21,13 +21,18 @@ were the only noisy input and the PDGE profiles were exact. Two inputs it holds 
   the sample standard deviation of the re-fitted parameters is the noise contribution (it
   contains the LM's). Where the fit's residuals say that the poses scatter more than that
   (σ² > 1), each draw is scaled by √σ², as the LM's σ²(JᵀJ)⁻¹ is (the Birge ratio).
+  Each draw chooses the smoothers' roughness again by GCV, as the calibration does: the choice
+  follows the noise, and on the full-size campaign it is most of the spread of the A and C
+  location terms (δAY spread 13.7 times, βCY 3.5 times that with the roughness held, in full
+  re-calibrations from re-drawn pixel noise; docs/calibrate.md).
 
 A re-fit is the alternation of :func:`~tasks.identification.pige_identification.alternate`
-linearised about the identified solution: it starts there, holds the PDGE smoothers' roughness
-(:mod:`tasks.identification.smoothing`) and replaces each constant fit by a Gauss–Newton step with
-the fit's own Jacobian (:func:`_linearised_refit`), so it measures how this estimator moves with
-its inputs (the 33 re-fits of the demo take about 24 s on 2 cores). tests/test_identification.py checks its camera
-part against re-running the whole calibration. Units: the parameters' internal units (mm, rad).
+linearised about the identified solution: it starts there and replaces each constant fit by a
+Gauss–Newton step with the fit's own Jacobian (:func:`_linearised_refit`); the camera re-fits hold
+the PDGE smoothers' roughness (:mod:`tasks.identification.smoothing`), the noise draws choose it
+again. It measures how this estimator moves with its inputs (the 33 re-fits of the demo take
+about 24 s on 2 cores). tests/test_identification.py checks its camera part against re-running
+the whole calibration. Units: the parameters' internal units (mm, rad).
 """
 
 from __future__ import annotations
@@ -90,12 +95,14 @@ profile) shrinks by about 0.8 per round, so 10 rounds carry about 90 % of a pert
 
 def _linearised_refit(machine: Machine, result: CalibrationResult, measurements: Measurements,
                       rounds: int = LINEARISED_ROUNDS) -> Callable[[Measurements], tuple]:
-    """``measurements`` moved -> (parameter values (P,), model): the alternation of
-    :func:`tasks.identification.pige_identification.alternate` (or of the fit with added effects,
-    :mod:`tasks.diagnosis.effect_fit`) from ``result``'s solution, with the PDGE smoothers held and
-    each constant fit replaced by a Gauss–Newton step with the fit's own Jacobian in its
-    identifiable subspace (the perturbations are small: a linear response). Each round extracts
-    the PDGEs from the sweep poses corrected for the model's imaging bias, as the fit does."""
+    """(``measurements`` moved, reselect_smoothing) -> (parameter values (P,), model): the
+    alternation of :func:`tasks.identification.pige_identification.alternate` (or of the fit with
+    added effects, :mod:`tasks.diagnosis.effect_fit`) from ``result``'s solution, each constant fit
+    replaced by a Gauss–Newton step with the fit's own Jacobian in its identifiable subspace (the
+    perturbations are small: a linear response). Each round extracts the PDGEs from the sweep
+    poses corrected for the model's imaging bias, as the fit does, with the PDGE smoothers'
+    roughness held at ``result``'s, or chosen again by GCV in every round (reselect_smoothing), as
+    the calibration itself chooses it."""
     specs, fit = result.pige.specs, result.pige.fit
     steps = np.array([s.jacobian_step for s in specs])
     s, Vt = right_singular(fit.jacobian * steps)  # natural units, as the LM took its subspace
@@ -111,12 +118,13 @@ def _linearised_refit(machine: Machine, result: CalibrationResult, measurements:
     # a perturbation moves the poses, not their covariances: one whitening serves every re-fit
     W = whitening(measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA).cov)
 
-    def refit(m: Measurements) -> tuple:
+    def refit(m: Measurements, reselect_smoothing: bool = False) -> tuple:
         poses = m.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
         x, ext = fit.x, extraction
+        smoothing = None if reselect_smoothing else result.pdge.smoothing
         for _ in range(rounds):
             profiles = extract_pdges(machine, ext, imaging_corrected(machine, ext, m),
-                                     smoothing=result.pdge.smoothing).profiles
+                                     smoothing=smoothing).profiles
             with_pdge = replace(skeleton, pdge={**skeleton.pdge, **profiles})
             r = np.einsum("nij,nj->ni", W, pose_residuals(machine, apply_parameters(with_pdge, specs, x), poses))
             x = x - gain @ r.ravel()
@@ -165,7 +173,7 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
     for _ in range(draws):
         jobs.append(("noise", np.einsum("nij,nj->ni", L, rng.standard_normal((len(measurements), 6)))))
     with ThreadPoolExecutor(max_workers=max(workers, 1)) as pool:
-        fits = list(pool.map(lambda job: refit(_moved(measurements, job[1])), jobs))
+        fits = list(pool.map(lambda job: refit(_moved(measurements, job[1]), job[0] == "noise"), jobs))
     labels = [label for label, _ in jobs]
     delta = np.array([x - x0 for x, _ in fits]).reshape(len(fits), x0.size)
     by_camera = {cam: np.sqrt(np.nansum(delta[[lab == cam for lab in labels]] ** 2, axis=0))

@@ -297,7 +297,7 @@ _TABLES = (
            "the LM's σ²(JᵀJ)⁻¹ alone: pose noise of the five-axis fit, PDGE profiles and intrinsics exact"),
         _c("uncertainty_noise", "float64", "unit column", PIGE_FRAME,
            "pose noise through PDGE extraction and fit (bootstrap, draws of C + C_floor scaled by "
-           "√max(σ², 1); NaN when not propagated)"),
+           "√max(σ², 1), the smoothers' roughness chosen again per draw; NaN when not propagated)"),
         _c("uncertainty_camera", "float64", "unit column", PIGE_FRAME,
            "from the cameras' self-calibrated intrinsics (NaN when not propagated)"),
         _c("identifiable", "bool", meaning="the poses determine it (SVD, docs/calibrate.md)"),

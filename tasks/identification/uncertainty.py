@@ -94,7 +94,7 @@ profile) shrinks by about 0.8 per round, so 10 rounds carry about 90 % of a pert
 
 
 def _linearised_refit(machine: Machine, result: CalibrationResult, measurements: Measurements,
-                      rounds: int = LINEARISED_ROUNDS) -> Callable[[Measurements], tuple]:
+                      rounds: int = LINEARISED_ROUNDS) -> Callable[..., tuple]:
     """(``measurements`` moved, reselect_smoothing) -> (parameter values (P,), model): the
     alternation of :func:`tasks.identification.pige_identification.alternate` (or of the fit with
     added effects, :mod:`tasks.diagnosis.effect_fit`) from ``result``'s solution, each constant fit

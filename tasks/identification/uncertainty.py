@@ -23,7 +23,7 @@ were the only noisy input and the PDGE profiles were exact. Two inputs it holds 
   (σ² > 1), each draw is scaled by √σ², as the LM's σ²(JᵀJ)⁻¹ is (the Birge ratio).
   Each draw chooses the smoothers' roughness again by GCV, as the calibration does: the choice
   follows the noise, and on the full-size campaign it is most of the spread of the A and C
-  location terms (δAY spread 13.7 times, βCY 3.5 times that with the roughness held, in full
+  location terms (δAY spread 14 times, βCY 3.4 times that with the roughness held, in full
   re-calibrations from re-drawn pixel noise; docs/calibrate.md).
 
 A re-fit is the alternation of :func:`~tasks.identification.pige_identification.alternate`

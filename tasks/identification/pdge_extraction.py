@@ -34,7 +34,7 @@ import pandas as pd
 from scipy.interpolate import CubicSpline
 
 from tasks import se3
-from tasks.error_model import COMPONENT_SCALE, ERROR_COMPONENTS, ErrorModel
+from tasks.error_model import COMPONENT_SCALE, ErrorModel
 from tasks.identification.measurements import Measurements
 from tasks.identification.smoothing import smooth
 from tasks.kinematics import forward, ideal_joint_motion
@@ -169,24 +169,23 @@ def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis:
     """The PDGE rows, smooth referred profile, removed line errors and spline roughness (6,) of one
     axis from its sweep. lam: the roughness to use (default: chosen by GCV)."""
     e = measured_error_motions(machine, model, sweep, axis)  # (N, 6) mm, rad
-    pos_cmd = sweep.table[axis].to_numpy(dtype=float)
-    frame = pd.DataFrame(e, columns=ERROR_COMPONENTS).assign(position=pos_cmd)
-    grouped = frame.groupby("position")
-    mean = grouped[list(ERROR_COMPONENTS)].mean()
-    count = grouped.size().to_numpy()
-    positions_cmd = mean.index.to_numpy(dtype=float)
+    # the images of a position averaged over its repeats (numpy, not groupby: this runs in every
+    # round of the alternation and of each uncertainty re-fit)
+    positions_cmd, where, count = np.unique(sweep.table[axis].to_numpy(dtype=float), return_inverse=True,
+                                            return_counts=True)
+    values = np.zeros((positions_cmd.size, 6))
+    np.add.at(values, where, e)
+    values /= count[:, None]
     ax = machine.axes[axis]
     q = ax.to_internal(positions_cmd)
     # pooled within-position variance per component (homoscedastic repeats); 1 repeat: point-to-point scatter
-    dev = frame[list(ERROR_COMPONENTS)] - grouped[list(ERROR_COMPONENTS)].transform("mean")
-    dof = max(int(len(frame) - len(mean)), 0)
+    dof = max(int(len(e) - positions_cmd.size), 0)
     if dof >= 3:
-        pooled = (dev.to_numpy() ** 2).sum(axis=0) / dof
+        pooled = ((e - values[where]) ** 2).sum(axis=0) / dof
     else:
-        pooled = np.var(np.diff(mean.to_numpy(), axis=0), axis=0) / 2 if len(mean) > 2 else np.ones(6)
+        pooled = np.var(np.diff(values, axis=0), axis=0) / 2 if positions_cmd.size > 2 else np.ones(6)
     pooled = np.maximum(pooled, 1e-18)
     std = np.sqrt(pooled[None, :] / count[:, None])
-    values = mean.to_numpy()
     # one weight per position (the repeats' count): the pooled variance of a component scales all
     # its weights alike, and the smoother is invariant to that
     fitted, lam = smooth(q, values, count, lam)
@@ -194,20 +193,21 @@ def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis:
     fit_ref, line = referred_to_home(machine, axis, q, fitted, raw_profile)
     meas_ref, _ = referred_to_home(machine, axis, q, values, raw_profile)
     profile = TabulatedProfile(q, fit_ref)
-    rows = pd.DataFrame({"axis": axis, "position": positions_cmd, "position_unit": "deg" if ax.is_rotary else "mm",
-                         "n_images": count})
-    for k, col in enumerate(COMPONENT_COLUMNS):
-        rows[col] = meas_ref[:, k] / COMPONENT_SCALE[k]
-        rows[f"std_{col}"] = std[:, k] / COMPONENT_SCALE[k]
-        rows[f"fit_{col}"] = fit_ref[:, k] / COMPONENT_SCALE[k]
-        rows[f"truth_{col}"] = np.nan
+    true_ref = np.full_like(meas_ref, np.nan)
     if truth is not None and axis in truth.pdge:
         true_values = truth.pdge[axis](q)
         true_ref, _ = referred_to_home(machine, axis, q, true_values, TabulatedProfile(q, true_values))
-        for k, col in enumerate(COMPONENT_COLUMNS):
-            rows[f"truth_{col}"] = true_ref[:, k] / COMPONENT_SCALE[k]
-    rows["translation_um"] = np.linalg.norm(rows[list(COMPONENT_COLUMNS[:3])].to_numpy(), axis=1)
-    rows["rotation_arcsec"] = np.linalg.norm(rows[list(COMPONENT_COLUMNS[3:])].to_numpy(), axis=1)
+    columns = {"axis": axis, "position": positions_cmd, "position_unit": "deg" if ax.is_rotary else "mm",
+               "n_images": count}
+    for k, col in enumerate(COMPONENT_COLUMNS):
+        columns[col] = meas_ref[:, k] / COMPONENT_SCALE[k]
+        columns[f"std_{col}"] = std[:, k] / COMPONENT_SCALE[k]
+        columns[f"fit_{col}"] = fit_ref[:, k] / COMPONENT_SCALE[k]
+        columns[f"truth_{col}"] = true_ref[:, k] / COMPONENT_SCALE[k]
+    file_units = meas_ref / COMPONENT_SCALE
+    columns["translation_um"] = np.linalg.norm(file_units[:, :3], axis=1)
+    columns["rotation_arcsec"] = np.linalg.norm(file_units[:, 3:], axis=1)
+    rows = pd.DataFrame(columns)
     return rows, profile, line, lam
 
 

@@ -31,7 +31,7 @@ linearised about the identified solution: it starts there and replaces each cons
 Gauss–Newton step with the fit's own Jacobian (:func:`_linearised_refit`); the camera re-fits hold
 the PDGE smoothers' roughness (:mod:`tasks.identification.smoothing`), the noise draws choose it
 again. It measures how this estimator moves with its inputs (the 33 re-fits of the demo take
-about 24 s on 2 cores). tests/test_identification.py checks its camera part against re-running
+about 19 s on 2 cores). tests/test_identification.py checks its camera part against re-running
 the whole calibration. Units: the parameters' internal units (mm, rad).
 """
 

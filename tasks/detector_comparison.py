@@ -248,9 +248,12 @@ def detector_runs(campaign_folder: str | Path, cameras: Mapping[str, CameraModel
     for image_id in ids:
         pixels[image_id] = cv2.imread(str(folder / rows_by_id.loc[image_id, "path"]), cv2.IMREAD_GRAYSCALE)
 
-    if warm_up:
-        first = next((i for i in ids if pixels[i] is not None), None)
-        if first is not None:
+    if warm_up:  # one untimed call per camera: lazy imports, and compiled code that only sharp dots reach
+        firsts = {}
+        for i in ids:
+            if pixels[i] is not None:
+                firsts.setdefault(rows_by_id.loc[i, "camera"], i)
+        for first in firsts.values():
             for d in detectors:
                 _time_detector(pixels[first], plates[rows_by_id.loc[first, "plate"]], d, None, 1)
 

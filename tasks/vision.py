@@ -39,7 +39,7 @@ from tasks.poses import estimate_poses
 
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
 # every cache key of the measure flow.
-VISION_CODE_VERSION = "vision-5"
+VISION_CODE_VERSION = "vision-6"
 COMMANDS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
 DETECTION_COLUMNS = ("image_id", "camera", "plate", "detection_status", "detection_message", "rotation_deg",

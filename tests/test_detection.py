@@ -437,3 +437,25 @@ def test_pixel_edge_fit_jacobian_matches_finite_differences():
         dq[:, j] = h
         numeric = (dot_model(q + dq, x, y) - dot_model(q - dq, x, y)) / (2 * h)
         assert np.abs(numeric - jac[:, j]).max() <= 1e-6 * max(np.abs(numeric).max(), 1.0), j
+
+
+def test_pixel_edge_fit_normal_equations_match_the_model_and_its_jacobian():
+    """The fit's compiled normal equations (JᵀWJ, JᵀWr, Σ w r²) against the same sums formed from
+    dot_model's values and Jacobian, with some pixels weighted out (which are then not evaluated)."""
+    from tasks.detection.edge_fit import _normal_equations, dot_model
+
+    rng = np.random.default_rng(1)
+    q = np.array([[10.2, 11.3, 8.0, 6.5, 0.4, 30.0, 200.0, 0.9, 1e-3, -2e-3],
+                  [11.0, 10.5, 7.2, 7.1, -1.2, 40.0, 180.0, 1.3, -2e-3, 1e-3]])
+    x, y = rng.uniform(0.0, 22.0, (2, 2, 300))
+    z = rng.uniform(20.0, 210.0, (2, 300))
+    w = (rng.uniform(size=(2, 300)) > 0.2).astype(float)
+    value, jac = dot_model(q, x, y, with_jacobian=True)
+    r = (value - z) * w
+    jw = jac * w[:, None, :]
+    got_value, jtj, jtr, cost = _normal_equations(q, x, y, z, w)
+    np.testing.assert_allclose(got_value[w > 0], value[w > 0], rtol=1e-13)
+    assert np.isnan(got_value[w == 0]).all()
+    np.testing.assert_allclose(jtj, jw @ jac.transpose(0, 2, 1), rtol=1e-11, atol=1e-9 * np.abs(jtj).max())
+    np.testing.assert_allclose(jtr, (jw @ r[:, :, None])[..., 0], rtol=1e-11, atol=1e-9 * np.abs(jtr).max())
+    np.testing.assert_allclose(cost, (r * r).sum(axis=1), rtol=1e-12)

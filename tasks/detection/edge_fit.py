@@ -182,7 +182,8 @@ def _normal_equations(params, x, y, z, w):
 
 @njit(**_COMPILED)
 def _band_kernel(image, centres, axes, theta, width, half):
-    """Each dot's pixels (window order) with |d| ≤ width: x, y, d in (K, (2·half+1)²) rows, and counts."""
+    """Each dot's pixels (window order) with |d| ≤ width: x, y, d in (K, M) rows packed to the widest
+    band M, the padding repeating the row's first pixel (0 for a row without any), and counts."""
     h, w = image.shape
     n_dots = centres.shape[0]
     side = 2 * half + 1
@@ -212,7 +213,15 @@ def _band_kernel(image, centres, axes, theta, width, half):
                     n = counts[k]
                     xs[k, n], ys[k, n], ds[k, n] = ju, iv, d
                     counts[k] = n + 1
-    return xs, ys, ds, counts
+    m = max(counts.max(), 1)
+    for k in range(n_dots):
+        first = 0 if counts[k] > 0 else -1
+        for n in range(counts[k], m):
+            if first < 0:
+                xs[k, n], ys[k, n], ds[k, n] = 0.0, 0.0, 0.0
+            else:
+                xs[k, n], ys[k, n], ds[k, n] = xs[k, first], ys[k, first], ds[k, first]
+    return xs[:, :m], ys[:, :m], ds[:, :m], counts
 
 
 def _band_pixels(image: np.ndarray, centres, axes, theta, sigma, p: EdgeFitParams):
@@ -224,12 +233,8 @@ def _band_pixels(image: np.ndarray, centres, axes, theta, sigma, p: EdgeFitParam
     xs, ys, ds, counts = _band_kernel(np.ascontiguousarray(image), np.ascontiguousarray(centres, dtype=float),
                                       np.ascontiguousarray(axes, dtype=float), np.asarray(theta, dtype=float),
                                       np.asarray(width, dtype=float), half)
-    m = max(int(counts.max()), 1)
-    mask = np.arange(m)[None, :] < counts[:, None]
-    pad = np.where(mask, np.arange(m)[None, :], 0)  # a row without band pixels stays masked out
-    x, y, d = (np.take_along_axis(v[:, :m], pad, axis=1) for v in (xs, ys, ds))
-    x, y, d = (np.where(counts[:, None] > 0, v, 0.0) for v in (x, y, d))
-    return x, y, image[y.astype(int), x.astype(int)].astype(float), d, mask
+    mask = np.arange(xs.shape[1])[None, :] < counts[:, None]
+    return xs, ys, image[ys.astype(int), xs.astype(int)].astype(float), ds, mask
 
 
 def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, mask: np.ndarray,
@@ -257,9 +262,6 @@ def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndar
         a = np.flatnonzero(active)
         if a.size == 0:
             break
-        everyone = a.size == len(q)
-        # while every dot is active, pass the arrays themselves, not gathered copies
-        x_a, y_a, z_a, w_a = (x, y, z, w) if everyone else (x[a], y[a], z[a], w[a])
         diag = np.einsum("kii->ki", jtj[a])
         # the floor keeps θ of a near-circular dot (no signal) from making the system singular
         diag = np.maximum(diag, 1e-9 * diag.max(axis=1, keepdims=True))
@@ -272,8 +274,8 @@ def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndar
             a, step = a[~settled], step[~settled]
             if a.size == 0:
                 break
-            if settled.any():
-                x_a, y_a, z_a, w_a = x[a], y[a], z[a], w[a]
+        # while every dot is active, pass the arrays themselves, not gathered copies
+        x_a, y_a, z_a, w_a = (x, y, z, w) if a.size == len(q) else (x[a], y[a], z[a], w[a])
         q_new = q[a] + step
         value_new, jtj_new, jtr_new, cost_new = _normal_equations(q_new, x_a, y_a, z_a, w_a)
         better = np.isfinite(cost_new) & (cost_new < cost[a])

@@ -231,7 +231,7 @@ def detect(
 def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports: Path,
                    add_effect: list[str] | None, effect_module: list[str] | None,
                    dask_address: str | None = None, dask_workers: int | None = None,
-                   orientation: str = "full") -> dict:
+                   orientation: str = "full", verification_repeats: int = 1) -> dict:
     """Check the effect and orientation options (a bad value is a usage error), then run the calibrate
     flow on a campaign that passes the campaign-level checks; returns the flow's summary."""
     from tasks.effects import load_effect_modules, parse_effect
@@ -250,7 +250,8 @@ def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports:
 
         return calibrate_campaign(str(campaign), None if results is None else str(results), detector, str(reports),
                                   effects=list(add_effect or []), effect_modules=list(effect_module or []),
-                                  dask_address=dask_address, dask_workers=dask_workers, orientation=orientation)
+                                  dask_address=dask_address, dask_workers=dask_workers, orientation=orientation,
+                                  verification_repeats=verification_repeats)
 
     return _on_valid_campaign(campaign, run)
 
@@ -269,10 +270,13 @@ def calibrate(
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
     orientation: OrientationOption = "full",
+    verification_repeats: Annotated[int, typer.Option(
+        min=1, help="images of each compensated pose in the simulated verification capture (passes over all the "
+                    "poses in turn); the after figures as the VBM measures them average them")] = 1,
 ) -> None:
     """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
     summary = _run_calibrate(campaign, results, detector, reports, add_effect, effect_module, dask_address,
-                             dask_workers, orientation)
+                             dask_workers, orientation, verification_repeats)
     typer.echo(f"campaign {summary['campaign_id']}: fit σ² = {summary['sigma2']:.3g} (1 = as the pose covariances "
                f"predict); cached: {summary['cached']}")
     typer.echo("mean tip errors of the validation poses (position, orientation, tool direction):")

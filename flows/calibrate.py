@@ -86,8 +86,10 @@ def _measure_capture(folder: Path, results_root: str | None, cameras: dict, dete
 def calibrate_campaign(campaign: str, results_root: str | None = None, detector: str = "rrht",
                        reports_root: str = "reports", run: str | None = None, effects: list[str] | None = None,
                        effect_modules: list[str] | None = None, dask_address: str | None = None,
-                       dask_workers: int | None = None, orientation: str = "full") -> dict[str, Any]:
-    """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path.
+                       dask_workers: int | None = None, orientation: str = "full",
+                       verification_repeats: int = 1) -> dict[str, Any]:
+    """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path
+    and, for a simulated campaign, the verification capture's folder.
 
     dask_address, dask_workers: where the campaign's image work (ingest, detection, camera
     calibration, poses) runs (flows.runners.image_task_runner); the fit and the simulated
@@ -100,8 +102,14 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
 
     orientation: the compensation's orientation objective (``tasks.compensation.ORIENTATION_OBJECTIVES``:
     "full", the seed's whole tip rotation, or "tool-axis", the tool direction exactly); changing it
-    re-runs the compensation, the verification capture and the report."""
+    re-runs the compensation, the verification capture and the report.
+
+    verification_repeats: images of each compensated pose in the verification capture (passes
+    over all the poses in turn); the VBM's after figures average them, and their noise floor falls
+    as 1/√n. Changing it re-renders and re-measures the capture only."""
     check_objective(orientation)  # before the image work and the fit, not after them
+    if int(verification_repeats) < 1:
+        raise ValueError(f"verification_repeats must be at least 1, got {verification_repeats!r}")
     logger = get_run_logger()
     load_effect_modules(effect_modules or [])
     base = ErrorModel(effects=[parse_effect(s) for s in effects or []])
@@ -143,13 +151,17 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     compensated = compensation.commands
     desired = desired_tip_poses(machine, commands)
     parts = {("before", "vbm"): (ids, vbm_errors(machine, result.model, desired, commands, validation.T,
-                                                 validation.cov, VALIDATION_CAMERA))}
+                                                 validation.cov, VALIDATION_CAMERA).assign(repeats=1))}
     cached = {"measure": measured["cached"], "identify": ident.state.name == "Cached",
               "compensate": comp.state.name == "Cached"}
+    capture_folder = None
     if simulated:
-        logger.info(f"simulator renders the verification capture of {len(ids)} compensated poses")
-        capture_id = "compensated-" + content_key(compensated.round(9).tolist())[:12]
-        cap = capture_task.submit(folder, folder / "captures" / capture_id, ids, compensated)
+        logger.info(f"simulator renders the verification capture of {len(ids)} compensated poses, "
+                    f"{verification_repeats} image(s) each")
+        # one image per pose keeps the name it had before repeats existed (captures already on disk)
+        capture_id = "compensated-" + content_key(compensated.round(9).tolist(), *(
+            [verification_repeats] if verification_repeats != 1 else []))[:12]
+        cap = capture_task.submit(folder, folder / "captures" / capture_id, ids, compensated, verification_repeats)
         capture_folder = Path(cap.result())
         cached["capture"] = cap.state.name == "Cached"
         after = _measure_capture(capture_folder, results_root, cameras, detector)
@@ -171,7 +183,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     provenance = {"fivecal_version": fivecal.__version__, "detector": detector, "campaign": str(folder),
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
                   "identification_code": IDENTIFICATION_CODE_VERSION, "effects": [e.spec() for e in base.effects],
-                  "orientation_objective": orientation,
+                  "orientation_objective": orientation, "verification_repeats": int(verification_repeats),
                   "effect_modules": list(effect_modules or [])}
     pdge_table, pige_table = result.pdge.table, result.pige_table(propagated)
     compensation_rows = compensation_table(ids, commands, compensation)
@@ -217,4 +229,5 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
             "cv_rms": cv_rms, "effects": [e.spec() for e in result.model.effects],
             "diagnosis": diagnosis.sentences, "diagnosis_best": diagnosis.best,
             "tables": tables, "cached": cached, "sigma2": fit.sigma2,
+            "capture": None if capture_folder is None else str(capture_folder),
             "verification_means": summary_rows.round(3).reset_index().to_dict("records")}

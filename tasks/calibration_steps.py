@@ -91,10 +91,13 @@ def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray, o
 
 @task(name="simulate-verification-capture", persist_result=True,
       cache_key_fn=lambda c, p: _key("capture", str(p["campaign_folder"]), str(p["out_folder"]),
-                                     list(p["image_ids"]), np.round(p["commands"], 9).tolist()))
-def capture_task(campaign_folder: Path, out_folder: Path, image_ids: list[str], commands: np.ndarray) -> str:
-    """The simulator renders the follow-up capture at the compensated commands."""
-    return str(simulate_capture(campaign_folder, out_folder, image_ids, commands))
+                                     list(p["image_ids"]), np.round(p["commands"], 9).tolist(),
+                                     *([p["repeats"]] if p.get("repeats", 1) != 1 else [])))
+def capture_task(campaign_folder: Path, out_folder: Path, image_ids: list[str], commands: np.ndarray,
+                 repeats: int = 1) -> str:
+    """The simulator renders the follow-up capture at the compensated commands, ``repeats`` images
+    per pose."""
+    return str(simulate_capture(campaign_folder, out_folder, image_ids, commands, repeats=repeats))
 
 
 @task(name="formulation-comparison", persist_result=True,

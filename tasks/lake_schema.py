@@ -322,8 +322,11 @@ _TABLES = (
            "angle between the reached and the desired tool axis: the part of the orientation error five "
            "axes can remove"),
         *(_c(n, "float64", u, f, m) for n, u, f, m in _TIP),
+        _i("repeats", "images averaged into the vbm row's measured pose (the after rows: the verification "
+           "capture's repeats per pose; null for truth)"),
         _c("noise_floor_position_um", "float64", "um", WORKPIECE,
-           "expected position error norm from measurement noise alone (vbm rows; NaN for truth)"),
+           "expected position error norm from measurement noise alone, for the repeats' mean (vbm rows; "
+           "NaN for truth)"),
         _c("noise_floor_orientation_arcsec", "float64", "arcsec", TIP_ROTATION,
            "expected orientation error norm from measurement noise alone (vbm rows; NaN for truth)"),
         _c("noise_floor_tool_direction_arcsec", "float64", "arcsec", WORKPIECE,

@@ -269,3 +269,31 @@ def poses_from_table(table: pd.DataFrame) -> np.ndarray:
 def covariances_from_table(table: pd.DataFrame) -> np.ndarray:
     """(N, 6, 6) covariances of δ = (v mm, ω rad) from the cov00…cov55 columns."""
     return table[list(COV_COLUMNS)].to_numpy(dtype=float).reshape(-1, 6, 6)
+
+
+def mean_poses(T_cam_plate: np.ndarray, covariances: np.ndarray, group: np.ndarray,
+               n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mean plate pose of each group of repeated images and its covariance.
+
+    T_cam_plate: (N, 4, 4) plate → camera (mm); covariances: (N, 6, 6) of the plate-frame twist
+    (v mm, ω rad); group: (N,) group index in [0, n_groups). The mean is the first image's pose
+    moved by the mean plate-frame twist log(T_first⁻¹ T_k) of the group: one Gauss–Newton step
+    of the Riemannian mean, exact to far below the noise for repeats micrometres and arcseconds
+    apart. Its covariance is Σ C_k / n² (independent repeats). Returns (n_groups, 4, 4),
+    (n_groups, 6, 6) and the count per group (n_groups,); a group with no image is NaN.
+    """
+    group = np.asarray(group, dtype=int)
+    count = np.bincount(group, minlength=n_groups)
+    first = np.full(n_groups, -1)
+    first[group[::-1]] = np.arange(len(group))[::-1]  # the first image of each group
+    ref = np.full((n_groups, 4, 4), np.nan)
+    ref[count > 0] = T_cam_plate[first[count > 0]]
+    twists = se3.log(se3.inverse(ref[group]) @ T_cam_plate)
+    mean_twist = np.zeros((n_groups, 6))
+    np.add.at(mean_twist, group, twists)
+    cov = np.zeros((n_groups, 6, 6))
+    np.add.at(cov, group, covariances)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_twist /= count[:, None]
+        cov /= (count ** 2)[:, None, None]
+    return ref @ se3.exp(mean_twist), cov, count

@@ -80,7 +80,8 @@ class Recorded:
         """The recorded run's model and compensation options, as calibrate_campaign's keywords."""
         p = self.parameters["provenance"]
         return {"effects": list(p.get("effects", [])), "effect_modules": list(p.get("effect_modules", [])),
-                "orientation": str(p.get("orientation_objective", "full"))}
+                "orientation": str(p.get("orientation_objective", "full")),
+                "verification_repeats": int(p.get("verification_repeats", 1))}
 
 
 @dataclass

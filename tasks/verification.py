@@ -15,6 +15,8 @@ can remove (docs/calibrate.md, step 6).
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 
@@ -22,7 +24,7 @@ from tasks import se3
 from tasks.error_model import ARCSEC, ErrorModel
 from tasks.kinematics import forward, tip_pose_error
 from tasks.machine import Machine
-from tasks.poses import covariances_from_table, poses_from_table
+from tasks.poses import covariances_from_table, mean_poses, poses_from_table
 
 
 def measured_tip_poses(machine: Machine, model: ErrorModel, commands: np.ndarray, T_cam_plate: np.ndarray,
@@ -75,18 +77,40 @@ def vbm_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, command
     return out
 
 
-def capture_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray, image_ids,
-                   capture: pd.DataFrame, camera: str, suffix: str = "_v") -> tuple[list[str], pd.DataFrame]:
-    """VBM tip errors of a follow-up capture whose image ``<id><suffix>`` re-measures pose ``id``.
+CAPTURE_SUFFIX = "_v"
 
-    capture: poses rows (image_id, status, T.., cov..). Poses whose capture has no ok pose are left
-    out. Returns (the validation image_ids kept, their errors)."""
-    ok = capture[capture["status"] == "ok"].set_index("image_id")
-    keep = np.array([f"{i}{suffix}" in ok.index for i in image_ids], dtype=bool)
+
+def capture_image_id(validation_id: str, repeat: int = 0) -> str:
+    """The follow-up capture's name for repeat ``repeat`` of validation pose ``validation_id``:
+    ``<id>_v`` for the first image, ``<id>_v<k>`` for repeat k ≥ 1 (docs/campaign-format.md)."""
+    return f"{validation_id}{CAPTURE_SUFFIX}" + (str(repeat) if repeat else "")
+
+
+def validation_id_of(capture_id: str) -> str | None:
+    """The validation pose a capture image re-measures (the inverse of :func:`capture_image_id`);
+    None for a name that does not follow it."""
+    m = re.fullmatch(rf"(.+){CAPTURE_SUFFIX}(\d*)", capture_id)
+    return None if m is None or m.group(2).startswith("0") else m.group(1)
+
+
+def capture_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray, image_ids,
+                   capture: pd.DataFrame, camera: str) -> tuple[list[str], pd.DataFrame]:
+    """VBM tip errors of a follow-up capture whose images :func:`capture_image_id` re-measure the
+    validation poses ``image_ids`` (desired tip poses (N, 4, 4), commands (N, 5) in their order).
+
+    capture: poses rows (image_id, status, T.., cov..). The ok images of a pose are averaged
+    (:func:`tasks.poses.mean_poses`), so its noise floor falls as 1/√n; the column ``repeats``
+    says how many. Poses with no ok image are left out. Returns (the validation image_ids kept,
+    their errors)."""
+    ok = capture[capture["status"] == "ok"]
+    index = {v: i for i, v in enumerate(image_ids)}
+    group = np.array([index.get(validation_id_of(c), -1) for c in ok["image_id"]], dtype=int)
+    ok, group = ok[group >= 0], group[group >= 0]
+    T, cov, count = mean_poses(poses_from_table(ok), covariances_from_table(ok), group, len(image_ids))
+    keep = count > 0
     kept = [i for i, k in zip(image_ids, keep, strict=True) if k]
-    rows = ok.loc[[f"{i}{suffix}" for i in kept]]
-    return kept, vbm_errors(machine, model, desired[keep], commands[keep], poses_from_table(rows),
-                            covariances_from_table(rows), camera)
+    errors = vbm_errors(machine, model, desired[keep], commands[keep], T[keep], cov[keep], camera)
+    return kept, errors.assign(repeats=count[keep])
 
 
 def true_errors(machine: Machine, truth: ErrorModel, desired: np.ndarray, commands: np.ndarray) -> pd.DataFrame:

@@ -22,6 +22,7 @@ from tasks.campaign_plan import temperature_at
 from tasks.error_model import ErrorModel
 from tasks.machine import AXIS_ORDER, load_machine
 from tasks.simulate import manifest_from_plan, simulate_truth, write_images
+from tasks.verification import capture_image_id
 
 CAPTURE_STAGE = "verification"
 
@@ -31,27 +32,33 @@ def is_simulated(campaign_folder: Path) -> bool:
 
 
 def capture_plan(image_ids, commands: np.ndarray, camera: str, start_s: float,
-                 seconds_per_image: float) -> pd.DataFrame:
-    """Plan rows for a capture at ``commands`` (N, 5), after the campaign (time from ``start_s``)."""
+                 seconds_per_image: float, repeats: int = 1) -> pd.DataFrame:
+    """Plan rows for a capture at ``commands`` (N, 5), after the campaign (time from ``start_s``):
+    ``repeats`` passes over all the poses in turn, as repeated runs of a positioning test are
+    taken, so that each repeat sees the machine at another time (temperature)."""
+    if int(repeats) < 1:
+        raise ValueError(f"verification repeats must be at least 1, got {repeats!r}")
     n = len(commands)
-    df = pd.DataFrame({"image_id": [f"{i}_v" for i in image_ids], "camera": camera, "stage": CAPTURE_STAGE,
-                       "group": CAPTURE_STAGE, "repeat": 0})
+    k = np.repeat(np.arange(int(repeats)), n)
+    df = pd.DataFrame({"image_id": [capture_image_id(i, r) for r in range(int(repeats)) for i in image_ids],
+                       "camera": camera, "stage": CAPTURE_STAGE, "group": CAPTURE_STAGE, "repeat": k})
     for i, axis in enumerate(AXIS_ORDER):
-        df[axis] = commands[:, i]
-    df["time_s"] = start_s + np.arange(n) * seconds_per_image
+        df[axis] = np.tile(commands[:, i], int(repeats))
+    df["time_s"] = start_s + np.arange(len(df)) * seconds_per_image
     df["temperature_c"] = temperature_at(df["time_s"].to_numpy())
     return df
 
 
 def simulate_capture(campaign_folder: Path, out_folder: Path, image_ids, commands: np.ndarray,
-                     camera: str = "camera1") -> Path:
-    """Render the capture at ``commands`` into ``out_folder`` (replaced whole); returns it."""
+                     camera: str = "camera1", repeats: int = 1) -> Path:
+    """Render the capture at ``commands`` (N, 5), ``repeats`` images per pose (:func:`capture_plan`),
+    into ``out_folder`` (replaced whole); returns it."""
     campaign_folder, out_folder = Path(campaign_folder), Path(out_folder)
     doc = json.loads((campaign_folder / TRUTH_DIR / "truth.json").read_text())
     metadata = json.loads((campaign_folder / "campaign.json").read_text())
     seconds = float(doc["plan"].get("seconds_per_image", 3.0))
     manifest = pd.read_csv(campaign_folder / "manifest.csv")
-    plan = capture_plan(image_ids, commands, camera, (len(manifest) + 60) * seconds, seconds)
+    plan = capture_plan(image_ids, commands, camera, (len(manifest) + 60) * seconds, seconds, repeats)
     machine = load_machine("prototype")
     errors = ErrorModel.from_dict(doc["error_model"])
     truth = simulate_truth(machine, errors, plan, {}, doc["size"])

@@ -1,8 +1,12 @@
 """The calibrate flow end to end on a small simulated campaign (Prefect test harness): a re-run
 re-uses every cached task, and adding an effect re-runs the fit and what follows it (the
-uncertainty propagation included) but no image work of the campaign."""
+uncertainty propagation included) but no image work of the campaign, and more images per
+verification pose re-run only the capture."""
 
 import shutil
+from pathlib import Path
+
+import pandas as pd
 
 from flows.calibrate import calibrate_campaign
 from tasks.reproduce import opencv_threads
@@ -17,6 +21,7 @@ def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image
     with opencv_threads(1):
         first = calibrate_campaign(str(folder), results_root=results, reports_root=reports, run="first")
         again = calibrate_campaign(str(folder), results_root=results, reports_root=reports, run="again")
+        single = read_table("verification", results, first["campaign_id"])  # before the next run replaces it
         effect = calibrate_campaign(str(folder), results_root=results, reports_root=reports, run="effect",
                                     effects=["backlash:axis=X,amount_um=0"])
     n_chunks = again["cached"]["measure"]["detect"]
@@ -37,3 +42,15 @@ def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image
     assert pige[pige.identifiable][["uncertainty_noise", "uncertainty_camera"]].notna().all().all()
     ladder = read_table("model_ladder", results, first["campaign_id"]).sort_values("step")
     assert len(ladder) == 2 and ladder["n_params"].iloc[1] == ladder["n_params"].iloc[0] + 1
+
+    # two images per verification pose: only the capture is new; its repeats are averaged
+    with opencv_threads(1):
+        repeated = calibrate_campaign(str(folder), results_root=results, reports_root=reports, run="repeats",
+                                      verification_repeats=2)
+    assert repeated["cached"] | {"capture": True} == again["cached"] and not repeated["cached"]["capture"]
+    after = read_table("verification", results, first["campaign_id"]).query("phase == 'after' and source == 'vbm'")
+    single_after = single.query("phase == 'after' and source == 'vbm'")
+    assert set(after["repeats"]) == {2} and set(single_after["repeats"]) == {1}
+    assert len(pd.read_csv(Path(repeated["capture"]) / "manifest.csv")) == 2 * len(after)
+    floor_ratio = after["noise_floor_position_um"].mean() / single_after["noise_floor_position_um"].mean()
+    assert 0.55 < floor_ratio < 0.85  # 1/√2, give or take each image's own noise estimate

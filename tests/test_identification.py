@@ -24,8 +24,16 @@ from tasks.identification.pige_identification import (
 )
 from tasks.kinematics import forward, tip_pose_error
 from tasks.machine import AXIS_ORDER
+from tasks.poses import COV_COLUMNS, POSE_COLUMNS
 from tasks.prototype_errors import load_prototype_errors
-from tasks.verification import noise_floor, tool_direction_noise_floor, true_errors
+from tasks.verification import (
+    capture_errors,
+    capture_image_id,
+    noise_floor,
+    tool_direction_noise_floor,
+    true_errors,
+    validation_id_of,
+)
 
 COV = np.diag([0.2e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])
 
@@ -188,6 +196,47 @@ def test_noise_floor_propagates_tilt_noise_with_the_tip_lever_arm():
     assert tool_direction_noise_floor(tip, cov)[0] == pytest.approx(1e-4 / ARCSEC)  # a tilt across the tool
     spin = np.diag([0.0] * 5 + [1e-4**2])[None]  # only a turn about the tool axis (tip z)
     assert tool_direction_noise_floor(tip, spin)[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def _capture_rows(image_ids: list[str], T: np.ndarray, cov: np.ndarray, status: list[str]) -> pd.DataFrame:
+    """A capture's poses table: image_id, status, T00…T23 and cov00…cov55 (NaN where not ok)."""
+    T = np.where(np.array(status)[:, None, None] == "ok", T, np.nan)
+    return pd.DataFrame({"image_id": image_ids, "status": status,
+                         **dict(zip(POSE_COLUMNS, T[:, :3, :].reshape(len(T), 12).T, strict=True)),
+                         **dict(zip(COV_COLUMNS, cov.reshape(len(cov), 36).T, strict=True))})
+
+
+def test_capture_image_names_map_back_to_their_validation_pose():
+    assert [capture_image_id("img7", k) for k in (0, 1, 12)] == ["img7_v", "img7_v1", "img7_v12"]
+    assert [validation_id_of(n) for n in ("img7_v", "img7_v1", "img7_v12", "a_v_v2")] == ["img7"] * 3 + ["a_v"]
+    assert [validation_id_of(n) for n in ("img7", "img7_v0", "img7_vx", "_v")] == [None] * 4
+
+
+def test_a_verification_capture_averages_the_repeats_of_each_pose(machine, errors):
+    """Two repeats of a pose moved by ±δ (plate frame) measure it exactly, with half one image's
+    covariance (its noise floor / √2); a failed repeat is left out of the mean, a pose with no ok
+    image is dropped, and an image of no validation pose is ignored."""
+    commands = _measurements(machine, plan_campaign(machine, SMALL, 5)[0]).stage("validation").commands[:3]
+    desired = desired_tip_poses(machine, commands)
+    cam_tip = forward(machine, commands, errors).relative(machine.tip, "camera1")
+    exact = cam_tip @ se3.inverse(desired)  # the plate poses that put the tip where it is desired
+    delta = np.array([2e-3, -1e-3, 5e-3, 20 * ARCSEC, -30 * ARCSEC, 5 * ARCSEC])
+    plus, minus = se3.exp(delta), se3.exp(-delta)
+    ids = ["p0", "p1", "p2"]
+    names = ["p0_v", "p0_v1", "p1_v", "p1_v1", "p2_v", "stray"]
+    T = np.stack([exact[0] @ plus, exact[0] @ minus, exact[1] @ plus, exact[1], exact[2], exact[2]])
+    status = ["ok", "ok", "ok", "pnp_failed", "pnp_failed", "ok"]
+    capture = _capture_rows(names, T, np.broadcast_to(COV, (6, 6, 6)), status)
+
+    kept, e = capture_errors(machine, errors, desired, commands, ids, capture, "camera1")
+    assert kept == ["p0", "p1"] and e["repeats"].tolist() == [2, 1]
+    assert e["position_um"].iloc[0] < 1e-6 and e["orientation_arcsec"].iloc[0] < 1e-6
+    one = capture_errors(machine, errors, desired, commands, ids, capture.iloc[[2]], "camera1")[1]
+    assert e["position_um"].iloc[1] == pytest.approx(one["position_um"].iloc[0], rel=1e-12)
+    assert one["position_um"].iloc[0] > 5.0  # δ moves the tip by micrometres: the mean above is not trivial
+    measured = np.stack([exact[0], exact[1] @ plus])  # the mean plate pose of each kept pose
+    single_floor = noise_floor(se3.inverse(measured) @ cam_tip[:2], np.broadcast_to(COV, (2, 6, 6)))[0]
+    np.testing.assert_allclose(e["noise_floor_position_um"], single_floor / np.sqrt([2.0, 1.0]), rtol=1e-9)
 
 
 def test_expected_tip_errors_are_the_tip_changes_the_model_uncertainty_makes(machine, errors):

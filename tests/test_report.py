@@ -198,6 +198,11 @@ def test_summary_says_worse_when_after_exceeds_before_and_the_objective_is_count
 
     section = before_after_section(data, ba, NoFigures())
     assert "(validation poses): tool-axis 1, full (…) 1." in section
+    assert "Images per validation pose" not in section  # a table written before the repeats column
+
+    repeated = v.assign(repeats=np.where(v["phase"] == "before", 1, 5))
+    section = before_after_section(full_data(verification=repeated, compensation=compensation), ba, NoFigures())
+    assert "Images per validation pose in the VBM figures: before 1, after 5." in section
 
 
 def test_fmt_pm_rounds_to_two_significant_digits_of_u():

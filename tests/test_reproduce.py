@@ -240,12 +240,14 @@ def test_the_calibration_step_is_bitwise_repeatable_with_two_opencv_threads(cali
 
 
 def test_the_rerun_takes_the_recorded_model_and_compensation_options(tmp_path):
-    """An --add-effect, --orientation tool-axis report re-runs as such; an older report without
-    these keys re-runs as the plain fit with the default objective."""
+    """An --add-effect, --orientation tool-axis, --verification-repeats 5 report re-runs as such; an
+    older report without these keys re-runs as the plain fit with the default objective and one
+    image per verification pose."""
     provenance = {"campaign": "c", "effects": ["backlash:axis=X,amount_um=0,amount_arcsec=0"],
-                  "effect_modules": ["my_effects"], "orientation_objective": "tool-axis"}
+                  "effect_modules": ["my_effects"], "orientation_objective": "tool-axis", "verification_repeats": 5}
     recorded = R.Recorded(tmp_path, {"provenance": provenance}, {}, None)
     assert recorded.calibrate_options == {"effects": provenance["effects"], "effect_modules": ["my_effects"],
-                                          "orientation": "tool-axis"}
+                                          "orientation": "tool-axis", "verification_repeats": 5}
     old = R.Recorded(tmp_path, {"provenance": {"campaign": "c"}}, {}, None)
-    assert old.calibrate_options == {"effects": [], "effect_modules": [], "orientation": "full"}
+    assert old.calibrate_options == {"effects": [], "effect_modules": [], "orientation": "full",
+                                     "verification_repeats": 1}

@@ -88,3 +88,16 @@ def test_manifest_carries_commands_time_and_temperature(machine):
     assert list(m.columns[:6]) == ["image_id", "path", "camera", "stage", "group", "repeat"]
     assert m.timestamp.is_monotonic_increasing and m.timestamp.str.endswith("Z").all()
     assert m.temperature_c.between(19.0, 22.0).all() and m.temperature_c.nunique() > 10
+
+
+def test_a_verification_capture_plan_takes_its_repeats_as_passes_over_the_poses():
+    from tasks.verification_capture import capture_plan
+
+    commands = np.arange(10.0).reshape(2, 5)
+    plan = capture_plan(["a", "b"], commands, "camera1", start_s=100.0, seconds_per_image=3.0, repeats=3)
+    assert plan["image_id"].tolist() == ["a_v", "b_v", "a_v1", "b_v1", "a_v2", "b_v2"]
+    assert plan["repeat"].tolist() == [0, 0, 1, 1, 2, 2]
+    np.testing.assert_array_equal(plan[["X", "Y", "Z", "A", "C"]].to_numpy(), np.tile(commands, (3, 1)))
+    np.testing.assert_allclose(plan["time_s"], 100.0 + 3.0 * np.arange(6))
+    with pytest.raises(ValueError, match="at least 1"):
+        capture_plan(["a"], commands[:1], "camera1", 0.0, 3.0, repeats=0)

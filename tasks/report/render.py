@@ -274,6 +274,8 @@ def before_after_section(data: ReportData, ba: pd.DataFrame, sink: _FigureSink) 
              T.seed_rate_note()]
     if objective := _objective_note(data.compensation):
         parts.append(objective)
+    if repeats := _repeats_note(data.verification):
+        parts.append(repeats)
     if data.simulated and not (vt := T.vbm_vs_truth(data.verification)).empty:
         parts.append("### VBM against truth on the validation poses\n\nHow far the vision measurement of the "
                      "tip error is from the simulator's truth, pose by pose:\n\n" + T.format_vbm_vs_truth(vt))
@@ -290,6 +292,21 @@ def _objective_note(compensation: pd.DataFrame | None) -> str:
             + ". 'full' turns A and C for the whole tip rotation, as the seed's orientation error counts it; "
             "'tool-axis' puts the tool direction right and leaves the rotation about the tool axis free, which "
             "five axes cannot fix along with it (docs/calibrate.md, step 6).")
+
+
+def _repeats_note(verification: pd.DataFrame) -> str:
+    """How many images the VBM rows average per pose, per phase ("" when the table does not say)."""
+    if "repeats" not in verification.columns:
+        return ""
+    vbm = verification[verification["source"].astype(str) == "vbm"]
+    per_phase = vbm.groupby(vbm["phase"].astype(str), sort=False)["repeats"].agg(["min", "max"])
+    if per_phase.empty or per_phase.isna().any().any():
+        return ""
+    counts = ", ".join(f"{phase} {int(r['min'])}" + (f"–{int(r['max'])}" if r["max"] != r["min"] else "")
+                       for phase, r in per_phase.iterrows())
+    return (f"Images per validation pose in the VBM figures: {counts}. The repeats of a pose are averaged "
+            "(passes over all the poses in turn), so its noise floor falls as 1/√n; a systematic error of "
+            "the vision system, common to the repeats, does not.")
 
 
 def extras_section(data: ReportData, sink: _FigureSink) -> str:

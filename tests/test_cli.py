@@ -77,3 +77,9 @@ def test_calibrate_refuses_an_unknown_orientation_objective_before_any_work(tmp_
     result = runner.invoke(app, ["calibrate", str(tmp_path), "--orientation", "tool"])
     assert result.exit_code == 2
     assert "full, tool-axis" in result.output
+
+
+def test_calibrate_refuses_fewer_than_one_verification_image_per_pose_before_any_work(tmp_path):
+    result = runner.invoke(app, ["calibrate", str(tmp_path), "--verification-repeats", "0"])
+    assert result.exit_code == 2
+    assert "--verification-repeats" in result.output

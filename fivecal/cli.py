@@ -15,6 +15,7 @@ from fivecal.options import (
     DetectorOption,
     OrientationOption,
     ResultsOption,
+    VerificationRepeatsOption,
     check_orientation,
 )
 
@@ -270,9 +271,7 @@ def calibrate(
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
     orientation: OrientationOption = "full",
-    verification_repeats: Annotated[int, typer.Option(
-        min=1, help="images of each compensated pose in the simulated verification capture (passes over all the "
-                    "poses in turn); the after figures as the VBM measures them average them")] = 1,
+    verification_repeats: VerificationRepeatsOption = 1,
 ) -> None:
     """Calibrate a campaign: measure, PDGEs, PIGEs, compensation, verification capture and report."""
     summary = _run_calibrate(campaign, results, detector, reports, add_effect, effect_module, dask_address,

@@ -20,6 +20,10 @@ OrientationOption = Annotated[str, typer.Option(
          "'tool-axis' (the tool direction exactly; the rotation about the tool axis, which a round needle does "
          "not see, left free)")]
 
+VerificationRepeatsOption = Annotated[int, typer.Option(
+    min=1, help="images of each compensated pose in the simulated verification capture (passes over all the poses "
+                "in turn); the after figures as the VBM measures them average them")]
+
 
 def check_orientation(orientation: str) -> str:
     """``orientation`` if it is a compensation objective (tasks.compensation.ORIENTATION_OBJECTIVES);

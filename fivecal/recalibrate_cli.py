@@ -13,7 +13,7 @@ from typing import Annotated, Any
 import typer
 
 from fivecal.options import RESULTS_HELP as BASE_RESULTS_HELP
-from fivecal.options import DetectorOption, OrientationOption, check_orientation
+from fivecal.options import DetectorOption, OrientationOption, VerificationRepeatsOption, check_orientation
 
 RESULTS_HELP = f"{BASE_RESULTS_HELP}; the ledger is in <results>/.recalibration"
 REPORTS_HELP = "reports root: calibration reports in <reports>/<campaign_id>/, the drift report in <reports>/drift/"
@@ -51,7 +51,8 @@ def parse_tolerance(specs: list[str] | None):
 
 
 def _parameters(watch: Path, results: Path | None, reports: Path, tolerance: list[str] | None,
-                reference: str | None, settle_seconds: float, detector: str, orientation: str) -> dict[str, Any]:
+                reference: str | None, settle_seconds: float, detector: str, orientation: str,
+                verification_repeats: int = 1) -> dict[str, Any]:
     """The flow's parameters with absolute paths (a served run may start in another folder)."""
     from tasks.results_lake import results_root
 
@@ -60,7 +61,7 @@ def _parameters(watch: Path, results: Path | None, reports: Path, tolerance: lis
     return {"watch_dir": str(watch.resolve()), "results_root": str(results_root(results).resolve()),
             "reports_root": str(reports.resolve()), "tolerance": parse_tolerance(tolerance).to_dict(),
             "reference": reference, "settle_seconds": settle_seconds, "detector": detector,
-            "orientation": check_orientation(orientation)}
+            "orientation": check_orientation(orientation), "verification_repeats": int(verification_repeats)}
 
 
 def recalibrate(
@@ -72,11 +73,13 @@ def recalibrate(
     settle_seconds: SettleOption = 120.0,
     detector: DetectorOption = "rrht",
     orientation: OrientationOption = "full",
+    verification_repeats: VerificationRepeatsOption = 1,
     always_report: Annotated[bool, typer.Option(help="write the drift report even if nothing new was calibrated")]
     = False,
 ) -> None:
     """Run one recalibration tick now: calibrate every new campaign under --watch, then the drift report."""
-    params = _parameters(watch, results, reports, tolerance, reference, settle_seconds, detector, orientation)
+    params = _parameters(watch, results, reports, tolerance, reference, settle_seconds, detector, orientation,
+                         verification_repeats)
     from flows.recalibrate import recalibrate_new_campaigns
 
     state = recalibrate_new_campaigns(**params, always_report=always_report, return_state=True)
@@ -108,6 +111,7 @@ def serve_recalibration(
     settle_seconds: SettleOption = 120.0,
     detector: DetectorOption = "rrht",
     orientation: OrientationOption = "full",
+    verification_repeats: VerificationRepeatsOption = 1,
     name: Annotated[str, typer.Option(help="deployment name")] = "scheduled-recalibration",
     timezone: Annotated[str, typer.Option(help="IANA time zone of the cron schedule")] = "UTC",
 ) -> None:
@@ -122,7 +126,8 @@ def serve_recalibration(
                    "PREFECT_API_URL=http://127.0.0.1:4200/api` (docs/recalibration.md).", err=True)
         raise typer.Exit(2)
 
-    params = _parameters(watch, results, reports, tolerance, reference, settle_seconds, detector, orientation)
+    params = _parameters(watch, results, reports, tolerance, reference, settle_seconds, detector, orientation,
+                         verification_repeats)
     try:
         schedule = CronSchedule(cron=cron, timezone=timezone)
     except ValueError:

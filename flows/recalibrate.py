@@ -30,7 +30,7 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
                               tolerance: DriftTolerance = DriftTolerance(),  # noqa: B008 (frozen, JSON-able)
                               reference: str | None = None, settle_seconds: float = DEFAULT_SETTLE_S,
                               detector: str = "rrht", always_report: bool = False,
-                              orientation: str = "full") -> dict[str, Any]:
+                              orientation: str = "full", verification_repeats: int = 1) -> dict[str, Any]:
     """Calibrate the new campaigns under ``watch_dir`` and write the drift report.
 
     results_root: the lake (default data/results or $FIVECAL_RESULTS_DIR); the ledger lives in
@@ -41,6 +41,8 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
     folder changed more recently than this is taken to be still copying and left for the next tick.
     orientation: the compensation objective of every calibration ("full" or "tool-axis",
     tasks.compensation.ORIENTATION_OBJECTIVES); the drift verdict judges the orientation it aims at.
+    verification_repeats: images per compensated pose in each simulated verification capture
+    (calibrate_campaign).
     Returns calibrated/failed/waiting/skipped campaign lists and the drift report summary (or None).
     """
     check_objective(orientation)  # before any campaign is claimed
@@ -68,6 +70,7 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
                 logger.warning(f"{e.campaign_id}: {e.missing_images} image(s) of its manifest are missing; "
                                "ingest records them as faults")
             state = calibrate_campaign(e.folder, results_root, detector, reports_root, orientation=orientation,
+                                       verification_repeats=verification_repeats,
                                        return_state=True)
             if not state.is_completed():
                 logger.error(f"{e.campaign_id} ({e.folder}): calibration {state.name}: {state.message}; "

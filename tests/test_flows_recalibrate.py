@@ -182,7 +182,7 @@ def test_serve_recalibration_serves_the_flow_on_its_cron(prefect_harness, tmp_pa
     (tmp_path / "watch").mkdir()
     result = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "0 2 * * *", "--results",
                                       "res", "--tolerance", "abs_arcsec=20", "--timezone", "Europe/Zurich",
-                                      "--orientation", "tool-axis"])
+                                      "--orientation", "tool-axis", "--verification-repeats", "3"])
     assert result.exit_code == 0, result.output
     (kw,) = calls
     assert (kw["name"], kw["limit"], kw["schedules"][0].cron, kw["schedules"][0].timezone) == (
@@ -190,7 +190,7 @@ def test_serve_recalibration_serves_the_flow_on_its_cron(prefect_harness, tmp_pa
     p = kw["parameters"]
     assert (p["watch_dir"], p["results_root"], p["reports_root"]) == (
         str(tmp_path / "watch"), str(tmp_path / "res"), str(tmp_path / "reports"))  # absolute: runs start elsewhere
-    assert p["tolerance"]["abs_arcsec"] == 20.0 and p["orientation"] == "tool-axis"
+    assert p["tolerance"]["abs_arcsec"] == 20.0 and p["orientation"] == "tool-axis" and p["verification_repeats"] == 3
     assert recalibrate.recalibrate_new_campaigns.validate_parameters(p)
     unknown = CliRunner().invoke(app, ["serve-recalibration", "--watch", "watch", "--cron", "0 2 * * *",
                                        "--orientation", "spin"])

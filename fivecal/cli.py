@@ -284,6 +284,8 @@ def calibrate(
                    f"{r['tool_direction_arcsec']:8.1f}″")
     for name, path in summary["tables"].items():
         typer.echo(f"{name} table: {path}")
+    if summary.get("capture"):
+        typer.echo(f"verification capture: {summary['capture']}")
     typer.echo(f"report: {summary['report']}\nmarkdown: {summary['markdown']}")
 
 

@@ -284,10 +284,9 @@ def mean_poses(T_cam_plate: np.ndarray, covariances: np.ndarray, group: np.ndarr
     """
     group = np.asarray(group, dtype=int)
     count = np.bincount(group, minlength=n_groups)
-    first = np.full(n_groups, -1)
-    first[group[::-1]] = np.arange(len(group))[::-1]  # the first image of each group
+    present, first = np.unique(group, return_index=True)  # the first image of each group
     ref = np.full((n_groups, 4, 4), np.nan)
-    ref[count > 0] = T_cam_plate[first[count > 0]]
+    ref[present] = T_cam_plate[first]
     twists = se3.log(se3.inverse(ref[group]) @ T_cam_plate)
     mean_twist = np.zeros((n_groups, 6))
     np.add.at(mean_twist, group, twists)

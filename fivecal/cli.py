@@ -284,7 +284,10 @@ def calibrate(
                    f"{r['tool_direction_arcsec']:8.1f}″")
     for name, path in summary["tables"].items():
         typer.echo(f"{name} table: {path}")
-    if summary.get("capture"):
+    if summary.get("capture_state") == "requested":
+        typer.echo(f"verification capture requested: take the images listed in {summary['capture']}/capture_plan.csv, "
+                   f"write them and manifest.csv there, and run calibrate again (docs/campaign-format.md)")
+    elif summary.get("capture"):
         typer.echo(f"verification capture: {summary['capture']}")
     typer.echo(f"report: {summary['report']}\nmarkdown: {summary['markdown']}")
 

@@ -33,6 +33,7 @@ from tasks.calibration_steps import (
     propagate_task,
     report_task,
 )
+from tasks.capture_request import capture_rows, check_capture_commands, has_capture, write_capture_request
 from tasks.compensation import check_objective, compensation_table, desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
 from tasks.effects import load_effect_modules, parse_effect
@@ -89,7 +90,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                        dask_workers: int | None = None, orientation: str = "full",
                        verification_repeats: int = 1) -> dict[str, Any]:
     """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path
-    and, for a simulated campaign, the verification capture's folder.
+    and the verification capture's folder: measured, or (a lab's campaign whose capture is not
+    there yet) requested, its images listed in the folder's capture_plan.csv (tasks.capture_request).
 
     dask_address, dask_workers: where the campaign's image work (ingest, detection, camera
     calibration, poses) runs (flows.runners.image_task_runner); the fit and the simulated
@@ -154,23 +156,31 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                                                  validation.cov, VALIDATION_CAMERA).assign(repeats=1))}
     cached = {"measure": measured["cached"], "identify": ident.state.name == "Cached",
               "compensate": comp.state.name == "Cached"}
-    capture_folder = None
+    # one image per pose keeps the name it had before repeats existed (captures already on disk)
+    capture_id = "compensated-" + content_key(compensated.round(9).tolist(), *(
+        [verification_repeats] if verification_repeats != 1 else []))[:12]
+    capture_folder = folder / "captures" / capture_id
+    requested = capture_rows(ids, compensated, VALIDATION_CAMERA, verification_repeats)
     if simulated:
         logger.info(f"simulator renders the verification capture of {len(ids)} compensated poses, "
                     f"{verification_repeats} image(s) each")
-        # one image per pose keeps the name it had before repeats existed (captures already on disk)
-        capture_id = "compensated-" + content_key(compensated.round(9).tolist(), *(
-            [verification_repeats] if verification_repeats != 1 else []))[:12]
-        cap = capture_task.submit(folder, folder / "captures" / capture_id, ids, compensated, verification_repeats)
+        cap = capture_task.submit(folder, capture_folder, ids, compensated, verification_repeats)
         capture_folder = Path(cap.result())
         cached["capture"] = cap.state.name == "Cached"
+        parts[("before", "truth")] = (ids, true_errors(machine, truth, desired, commands))
+        parts[("after", "truth")] = (ids, true_errors(machine, truth, desired, compensated))
+    if has_capture(capture_folder):
+        check_capture_commands(capture_folder, requested)
         after = _measure_capture(capture_folder, results_root, cameras, detector)
         parts[("after", "vbm")] = capture_errors(machine, result.model, desired, compensated, ids, after,
                                                  VALIDATION_CAMERA)
-        parts[("before", "truth")] = (ids, true_errors(machine, truth, desired, commands))
-        parts[("after", "truth")] = (ids, true_errors(machine, truth, desired, compensated))
+        capture_state = "measured"
     else:
-        logger.warning("not a simulated campaign: the after-compensation capture must come from the lab")
+        plan = write_capture_request(folder, capture_folder, requested)
+        capture_state = "requested"
+        logger.warning(f"no verification capture yet: take the {len(requested)} images listed in {plan} (the "
+                       f"compensated commands of the {len(ids)} validation poses), write them and manifest.csv "
+                       f"into {capture_folder} (docs/campaign-format.md, captures/), then run calibrate again")
     propagated = prop_future.result()
     cached["propagate_uncertainty"] = prop_future.state.name == "Cached"
     # how far the model's own uncertainty lets the tip miss, per phase
@@ -229,5 +239,5 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
             "cv_rms": cv_rms, "effects": [e.spec() for e in result.model.effects],
             "diagnosis": diagnosis.sentences, "diagnosis_best": diagnosis.best,
             "tables": tables, "cached": cached, "sigma2": fit.sigma2,
-            "capture": None if capture_folder is None else str(capture_folder),
+            "capture": str(capture_folder), "capture_state": capture_state,
             "verification_means": summary_rows.round(3).reset_index().to_dict("records")}

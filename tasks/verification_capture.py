@@ -17,14 +17,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tasks.campaign_io import TRUTH_DIR, write_manifest, write_metadata
+from tasks.campaign_io import COMMAND_COLUMNS, TRUTH_DIR, write_manifest, write_metadata
 from tasks.campaign_plan import temperature_at
+from tasks.capture_request import capture_rows
 from tasks.error_model import ErrorModel
 from tasks.machine import AXIS_ORDER, load_machine
 from tasks.simulate import manifest_from_plan, simulate_truth, write_images
-from tasks.verification import capture_image_id
-
-CAPTURE_STAGE = "verification"
 
 
 def is_simulated(campaign_folder: Path) -> bool:
@@ -34,16 +32,12 @@ def is_simulated(campaign_folder: Path) -> bool:
 def capture_plan(image_ids, commands: np.ndarray, camera: str, start_s: float,
                  seconds_per_image: float, repeats: int = 1) -> pd.DataFrame:
     """Plan rows for a capture at ``commands`` (N, 5), after the campaign (time from ``start_s``):
-    ``repeats`` passes over all the poses in turn, as repeated runs of a positioning test are
-    taken, so that each repeat sees the machine at another time (temperature)."""
-    if int(repeats) < 1:
-        raise ValueError(f"verification repeats must be at least 1, got {repeats!r}")
-    n = len(commands)
-    k = np.repeat(np.arange(int(repeats)), n)
-    df = pd.DataFrame({"image_id": [capture_image_id(i, r) for r in range(int(repeats)) for i in image_ids],
-                       "camera": camera, "stage": CAPTURE_STAGE, "group": CAPTURE_STAGE, "repeat": k})
-    for i, axis in enumerate(AXIS_ORDER):
-        df[axis] = np.tile(commands[:, i], int(repeats))
+    the rows a lab would be asked for (:func:`tasks.capture_request.capture_rows`, ``repeats``
+    passes over all the poses in turn, so that each repeat sees the machine at another time and
+    temperature), with the axes as AXIS_ORDER columns, time_s and temperature_c."""
+    rows = capture_rows(image_ids, commands, camera, repeats)
+    df = rows.drop(columns=["path", *COMMAND_COLUMNS]).assign(
+        **{axis: rows[col] for axis, col in zip(AXIS_ORDER, COMMAND_COLUMNS, strict=True)})
     df["time_s"] = start_s + np.arange(len(df)) * seconds_per_image
     df["temperature_c"] = temperature_at(df["time_s"].to_numpy())
     return df

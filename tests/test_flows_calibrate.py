@@ -7,8 +7,10 @@ import shutil
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 from flows.calibrate import calibrate_campaign
+from tasks.ingest import CampaignError
 from tasks.reproduce import opencv_threads
 from tasks.results_lake import read_table
 
@@ -54,3 +56,42 @@ def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image
     assert len(pd.read_csv(Path(repeated["capture"]) / "manifest.csv")) == 2 * len(after)
     floor_ratio = after["noise_floor_position_um"].mean() / single_after["noise_floor_position_um"].mean()
     assert 0.55 < floor_ratio < 0.85  # 1/√2, give or take each image's own noise estimate
+
+
+def test_a_lab_campaign_is_asked_for_its_capture_and_verified_once_it_is_there(
+        calibrated_campaign, prefect_harness, tmp_path):
+    """Without truth, calibrate writes the capture request and no after rows; with the lab's
+    capture in place (here: the simulated campaign's own capture, the same images at the same
+    commands) it measures the after rows exactly as for the simulated campaign; an image taken at
+    another command stops it, naming the manifest's row, with the lake left as it was."""
+    lab = tmp_path / "campaigns" / calibrated_campaign.campaign.name
+    shutil.copytree(calibrated_campaign.campaign, lab, ignore=shutil.ignore_patterns("captures", "truth"))
+    results, reports = str(tmp_path / "results"), str(tmp_path / "reports")
+    with opencv_threads(1):
+        asked = calibrate_campaign(str(lab), results_root=results, reports_root=reports, run="asked")
+    assert asked["capture_state"] == "requested"
+    request = Path(asked["capture"])
+    assert request.name == Path(calibrated_campaign.summary["capture"]).name  # same compensated commands
+    plan = pd.read_csv(request / "capture_plan.csv")
+    verification = read_table("verification", results, asked["campaign_id"])
+    assert set(zip(verification.phase, verification.source, strict=True)) == {("before", "vbm")}
+    assert len(plan) == len(verification)
+
+    simulated = Path(calibrated_campaign.summary["capture"])  # the lab plays back the simulator's capture
+    shutil.copytree(simulated / "images", request / "images")
+    shutil.copy(simulated / "manifest.csv", request / "manifest.csv")
+    with opencv_threads(1):
+        measured = calibrate_campaign(str(lab), results_root=results, reports_root=reports, run="measured")
+    assert measured["capture_state"] == "measured"
+    mine = read_table("verification", results, asked["campaign_id"]).query("source == 'vbm'")
+    reference = read_table("verification", calibrated_campaign.results, asked["campaign_id"]).query("source == 'vbm'")
+    columns = ["image_id", "phase", "position_um", "orientation_arcsec", "repeats"]
+    pd.testing.assert_frame_equal(mine[columns].reset_index(drop=True), reference[columns].reset_index(drop=True))
+
+    manifest = pd.read_csv(request / "manifest.csv")
+    manifest.loc[1, "Z_mm"] += 0.01
+    manifest.to_csv(request / "manifest.csv", index=False)
+    with opencv_threads(1), pytest.raises(CampaignError, match=r"manifest\.csv.*row 2 \(.*_v\): Z_mm"):
+        calibrate_campaign(str(lab), results_root=results, reports_root=reports, run="moved")
+    kept = read_table("verification", results, asked["campaign_id"]).query("source == 'vbm'")
+    pd.testing.assert_frame_equal(kept[columns].reset_index(drop=True), mine[columns].reset_index(drop=True))

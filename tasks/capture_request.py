@@ -1,0 +1,92 @@
+"""The verification capture a lab takes: what fivecal asks for, and the check of what came back.
+
+Verification is a second capture at the compensated commands of the validation poses. For a
+simulated campaign the simulator renders it (:mod:`tasks.verification_capture`). For a lab's
+campaign ``fivecal calibrate`` writes the request into ``<campaign>/captures/<capture_id>/``:
+
+* ``campaign.json``: the campaign's metadata under the campaign_id ``<id>-<capture_id>``;
+* ``capture_plan.csv``: the images to take, in order (image_id, path, camera, stage, group,
+  repeat and the commanded X_mm … C_deg, the compensated commands), ``repeats`` passes over the
+  poses (names from :func:`tasks.verification.capture_image_id`).
+
+The lab's capture software drives the machine through the rows, writes ``images/`` and
+``manifest.csv`` (the same rows with timestamp and, optionally, temperature_c) into that folder,
+and ``fivecal calibrate`` is run again: it finds the manifest, checks that each image was taken
+at the command it was asked for (:func:`check_capture_commands`) and measures it.
+
+No Prefect, no truth: analysis side.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from tasks.campaign_io import COMMAND_COLUMNS, MANIFEST_FILE, METADATA_FILE, atomic_write_text, image_relpath
+from tasks.ingest import CampaignError, load_manifest
+from tasks.verification import capture_image_id
+
+PLAN_FILE = "capture_plan.csv"
+CAPTURE_STAGE = "verification"
+COMMAND_TOLERANCE = {"X_mm": 1e-3, "Y_mm": 1e-3, "Z_mm": 1e-3, "A_deg": 1 / 3600, "C_deg": 1 / 3600}
+"""How far a captured image's command may be from the requested one: 1 µm, 1″ (the manifest's
+rounding is 1e-6)."""
+
+
+def capture_rows(image_ids, commands: np.ndarray, camera: str, repeats: int = 1) -> pd.DataFrame:
+    """The capture's images in order: ``repeats`` passes over the poses ``image_ids`` at
+    ``commands`` (N, 5; mm and deg, AXIS_ORDER). Columns image_id, path, camera, stage, group,
+    repeat, X_mm, Y_mm, Z_mm, A_deg, C_deg."""
+    if int(repeats) < 1:
+        raise ValueError(f"verification repeats must be at least 1, got {repeats!r}")
+    commands = np.asarray(commands, dtype=float)
+    names = [capture_image_id(i, r) for r in range(int(repeats)) for i in image_ids]
+    rows = pd.DataFrame({"image_id": names, "path": [image_relpath(camera, n) for n in names], "camera": camera,
+                         "stage": CAPTURE_STAGE, "group": CAPTURE_STAGE,
+                         "repeat": np.repeat(np.arange(int(repeats)), len(commands))})
+    for col, values in zip(COMMAND_COLUMNS, np.tile(commands, (int(repeats), 1)).T, strict=True):
+        rows[col] = values
+    return rows
+
+
+def write_capture_request(campaign_folder: Path, out_folder: Path, rows: pd.DataFrame) -> Path:
+    """Write the request for the capture ``rows`` (:func:`capture_rows`) into ``out_folder``:
+    campaign.json and capture_plan.csv (atomic writes; a manifest already there is left alone).
+    Returns the plan's path."""
+    campaign_folder, out_folder = Path(campaign_folder), Path(out_folder)
+    metadata = json.loads((campaign_folder / METADATA_FILE).read_text())
+    out_folder.mkdir(parents=True, exist_ok=True)
+    capture_metadata = {**metadata, "campaign_id": f"{metadata['campaign_id']}-{out_folder.name}"}
+    atomic_write_text(out_folder / METADATA_FILE, json.dumps(capture_metadata, indent=1))
+    atomic_write_text(out_folder / PLAN_FILE, rows.round(dict.fromkeys(COMMAND_COLUMNS, 6)).to_csv(index=False))
+    return out_folder / PLAN_FILE
+
+
+def has_capture(folder: Path) -> bool:
+    """Whether the capture folder holds a manifest (the lab has written its capture)."""
+    return (Path(folder) / MANIFEST_FILE).is_file()
+
+
+def check_capture_commands(folder: Path, rows: pd.DataFrame) -> None:
+    """Raise :class:`tasks.ingest.CampaignError` naming ``<folder>/manifest.csv`` and its rows
+    where an image of the request ``rows`` (:func:`capture_rows`) was taken at another command
+    than requested (beyond :data:`COMMAND_TOLERANCE`) or at no number. Images the request does not
+    name are not checked (the analysis ignores them); a requested image the manifest lacks is not
+    an error (the pose is measured by its other repeats, or left out of the after rows)."""
+    manifest = load_manifest(folder)
+    both = manifest.merge(rows, on="image_id", suffixes=("", "_requested"))
+    problems = []
+    for col, tol in COMMAND_TOLERANCE.items():
+        got = pd.to_numeric(both[col], errors="coerce").to_numpy(dtype=float)
+        want = both[f"{col}_requested"].to_numpy(dtype=float)
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.abs(got - want) <= tol)  # NaN (not a number) counts as bad
+        problems += [f"row {r} ({i}): {col} {g!r}, requested {w:.6f}" for r, i, g, w in
+                     zip(both["manifest_row"][bad], both["image_id"][bad], both[col][bad], want[bad], strict=True)]
+    if problems:
+        shown = "; ".join(problems[:5]) + (f"; and {len(problems) - 5} more" if len(problems) > 5 else "")
+        raise CampaignError(f"{Path(folder) / MANIFEST_FILE}: images taken away from the requested compensated "
+                            f"commands (tolerance 1 µm, 1″; the request is {PLAN_FILE}): {shown}")

@@ -89,6 +89,9 @@ def recalibrate(
     summary = state.result()
     typer.echo(f"calibrated now: {', '.join(summary['calibrated']) or 'none'}")
     typer.echo(f"already calibrated: {', '.join(summary['already_calibrated']) or 'none'}")
+    if summary.get("awaiting_capture"):
+        typer.echo(f"awaiting the lab's verification capture (captures/<id>/capture_plan.csv): "
+                   f"{', '.join(summary['awaiting_capture'])}")
     for folder in summary["waiting"]:
         typer.echo(f"waiting (changed less than {settle_seconds:g} s ago): {folder}")
     for s in summary["skipped"]:

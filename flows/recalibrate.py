@@ -17,6 +17,7 @@ from prefect import flow, get_run_logger
 from prefect.runtime import flow_run
 
 from flows.calibrate import calibrate_campaign
+from tasks.campaign_watch import capture_arrived
 from tasks.compensation import check_objective
 from tasks.drift import DriftTolerance
 from tasks.recalibration_ledger import Ledger
@@ -43,7 +44,11 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
     tasks.compensation.ORIENTATION_OBJECTIVES); the drift verdict judges the orientation it aims at.
     verification_repeats: images per compensated pose in each simulated verification capture
     (calibrate_campaign).
-    Returns calibrated/failed/waiting/skipped campaign lists and the drift report summary (or None).
+    A campaign calibrated while its verification capture was only requested (a lab's campaign,
+    tasks.capture_request) is calibrated again on the first tick after the lab has written that
+    capture (and left it alone for settle_seconds): everything but the capture comes from the cache.
+    Returns calibrated/failed/waiting/skipped/awaiting_capture campaign lists and the drift report
+    summary (or None).
     """
     check_objective(orientation)  # before any campaign is claimed
     logger = get_run_logger()
@@ -52,18 +57,29 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
     for s in skipped:
         logger.warning(f"skipped {s.folder}: {s.reason} (looked at again next run)")
     new = [e for e in found if not ledger.is_done(e.campaign_id, e.input_sha256)]
+
+    def capture_pending(e) -> bool:  # calibrated, and the lab has since written the verification capture
+        return capture_arrived(ledger.record(e.campaign_id, e.input_sha256), settle_seconds)
+
+    def capture_requested(e) -> bool:  # calibrated, its verification capture asked of the lab
+        return (ledger.record(e.campaign_id, e.input_sha256) or {}).get("capture_state") == "requested"
+
+    captured = [e for e in found if e not in new and capture_pending(e)]
+    awaiting = [e for e in found if e not in new and e not in captured and capture_requested(e)]
     waiting = [e for e in new if e.quiet_s < settle_seconds]
     for e in waiting:
         logger.info(f"waiting for {e.folder}: changed {e.quiet_s:.0f} s ago (settle time {settle_seconds:g} s; "
                     "still being copied?)")
-    ready = [e for e in new if e.quiet_s >= settle_seconds]
-    logger.info(f"{len(found)} campaign(s) under {watch_dir}: {len(found) - len(new)} already calibrated, "
-                f"{len(ready)} to calibrate, {len(waiting)} still changing, {len(skipped)} folder(s) skipped")
+    ready = [e for e in new if e.quiet_s >= settle_seconds] + captured
+    logger.info(f"{len(found)} campaign(s) under {watch_dir}: {len(found) - len(new)} already calibrated "
+                f"({len(captured)} of them with a verification capture to measure now, {len(awaiting)} waiting for "
+                f"one), {len(ready) - len(captured)} to calibrate, {len(waiting)} still changing, "
+                f"{len(skipped)} folder(s) skipped")
 
     calibrated, failed = [], []
     for e in ready:
         with ledger.claim(e.campaign_id) as mine:
-            if not mine or ledger.is_done(e.campaign_id, e.input_sha256):
+            if not mine or (ledger.is_done(e.campaign_id, e.input_sha256) and not capture_pending(e)):
                 logger.info(f"{e.campaign_id}: calibrated or being calibrated by another run; skipped")
                 continue
             if e.missing_images:
@@ -78,8 +94,12 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
                 failed.append(e.campaign_id)
                 continue
             summary = state.result()
-            ledger.mark_done(e.campaign_id, e.input_sha256, {"folder": e.folder, "report": summary["report"],
-                                                             "recalibration_flow_run_id": str(flow_run.id)})
+            ledger.mark_done(e.campaign_id, e.input_sha256, {
+                "folder": e.folder, "report": summary["report"], "recalibration_flow_run_id": str(flow_run.id),
+                "capture": summary.get("capture"), "capture_state": summary.get("capture_state")})
+            if summary.get("capture_state") == "requested":
+                logger.warning(f"{e.campaign_id}: verification capture requested in {summary['capture']} "
+                               "(capture_plan.csv); measured on the first tick after the lab has written it")
             calibrated.append(e.campaign_id)
 
     drift = None
@@ -92,4 +112,6 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
         raise RuntimeError(f"calibration failed for {', '.join(failed)} (see the logs); retried next run")
     return {"calibrated": calibrated, "failed": failed, "waiting": [e.folder for e in waiting],
             "skipped": [{"folder": s.folder, "reason": s.reason} for s in skipped],
-            "already_calibrated": [e.campaign_id for e in found if e not in new], "drift": drift}
+            "already_calibrated": [e.campaign_id for e in found if e not in new and e not in captured],
+            "awaiting_capture": [e.campaign_id for e in found if capture_requested(e)],
+            "drift": drift}

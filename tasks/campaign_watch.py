@@ -99,6 +99,16 @@ def seconds_since_change(folder: Path, now: float | None = None) -> float:
     return max(0.0, (time.time() if now is None else now) - latest)
 
 
+def capture_arrived(record: dict | None, settle_seconds: float, now: float | None = None) -> bool:
+    """Whether a campaign calibrated while its verification capture was only requested (done
+    record ``capture_state`` "requested", ``capture`` its folder) has the lab's capture now: the
+    folder holds manifest.csv and nothing in it changed for ``settle_seconds``."""
+    if not record or record.get("capture_state") != "requested" or not record.get("capture"):
+        return False
+    folder = Path(record["capture"])
+    return (folder / MANIFEST_FILE).is_file() and seconds_since_change(folder, now) >= settle_seconds
+
+
 def read_entry(folder: Path, now: float | None = None) -> CampaignEntry:
     """The :class:`CampaignEntry` of ``folder``; raises :class:`tasks.ingest.CampaignError`
     (message naming the file) when it is incomplete or malformed."""

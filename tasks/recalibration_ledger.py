@@ -72,6 +72,11 @@ class Ledger:
         atomic_write_text(path, json.dumps(doc, indent=1, default=str))
         return path
 
+    def record(self, campaign_id: str, input_sha256: str) -> dict | None:
+        """The done record of this campaign input (None when not done)."""
+        path = self._done_path(campaign_id, input_sha256)
+        return json.loads(path.read_text()) if path.is_file() else None
+
     def records(self) -> list[dict]:
         """Every done record, sorted by finish time then campaign_id."""
         docs = [json.loads(p.read_text()) for p in self.folder.glob("done/*/*.json")]

@@ -3,6 +3,8 @@ once over repeated ticks, the drift report covers every campaign, and a failed o
 campaign is left for a later tick."""
 
 import asyncio
+import shutil
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -14,6 +16,7 @@ from tasks.lake_schema import partition_problems
 from tasks.recalibration_ledger import Ledger
 from tasks.results_lake import read_table
 from tasks.simulate import write_campaign
+from tasks.verification_capture import simulate_capture
 
 pytestmark = pytest.mark.flow
 
@@ -101,15 +104,48 @@ def test_each_dropped_campaign_is_calibrated_exactly_once(prefect_harness, tmp_p
     assert second["drift"]["report"].startswith(str(reports / "drift"))
 
 
+def test_a_lab_campaign_is_verified_on_the_tick_after_its_capture_arrives(prefect_harness, tmp_path):
+    """A campaign without truth is calibrated once with its verification capture requested; the
+    ticks after wait for the capture, and the first one after the lab wrote it measures it (the
+    same input, calibrated again from the cache plus the capture); then nothing is left to do."""
+    watch, results, reports = tmp_path / "watch", tmp_path / "results", tmp_path / "reports"
+    watch.mkdir()
+    simulated = write_campaign(tmp_path / "simulated", "lab1", seed=3, size="small", plan=PLAN)
+    lab = watch / "lab1"
+    shutil.copytree(simulated, lab, ignore=shutil.ignore_patterns("truth"))
+
+    first = tick(watch, results, reports)
+    assert first["calibrated"] == ["lab1"] and first["awaiting_capture"] == ["lab1"]
+    (record,) = Ledger.under(results).records()
+    capture = Path(record["capture"])
+    assert record["capture_state"] == "requested" and (capture / "capture_plan.csv").is_file()
+    waiting = tick(watch, results, reports)
+    assert (waiting["calibrated"], waiting["awaiting_capture"]) == ([], ["lab1"])
+
+    # the lab captures the plan (played here by the simulator, from the campaign's own truth)
+    plan = pd.read_csv(capture / "capture_plan.csv")
+    rendered = simulate_capture(simulated, tmp_path / "rendered", [i.removesuffix("_v") for i in plan.image_id],
+                                plan[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy())
+    shutil.copytree(rendered / "images", capture / "images")
+    shutil.copy(rendered / "manifest.csv", capture / "manifest.csv")
+    measured = tick(watch, results, reports)
+    assert (measured["calibrated"], measured["awaiting_capture"]) == (["lab1"], [])
+    assert [r["capture_state"] for r in Ledger.under(results).records()] == ["measured"]
+    after = read_table("verification", results, "lab1").query("phase == 'after'")
+    assert len(after) == len(plan) and set(after.source) == {"vbm"}
+    assert tick(watch, results, reports)["calibrated"] == []
+    assert calibrate_runs(lab) == ["Completed", "Completed"]
+
+
 @flow(name="fake-calibrate")
 def failing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None,
-                      orientation="full"):
+                      orientation="full", verification_repeats=1):
     raise RuntimeError(f"simulated crash on {campaign}")
 
 
 @flow(name="fake-calibrate")
 def passing_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None,
-                      orientation="full"):
+                      orientation="full", verification_repeats=1):
     return {"report": f"{campaign}/report.html"}
 
 

@@ -3,7 +3,6 @@ once over repeated ticks, the drift report covers every campaign, and a failed o
 campaign is left for a later tick."""
 
 import asyncio
-import shutil
 from pathlib import Path
 
 import pandas as pd
@@ -16,7 +15,6 @@ from tasks.lake_schema import partition_problems
 from tasks.recalibration_ledger import Ledger
 from tasks.results_lake import read_table
 from tasks.simulate import write_campaign
-from tasks.verification_capture import simulate_capture
 
 pytestmark = pytest.mark.flow
 
@@ -104,37 +102,43 @@ def test_each_dropped_campaign_is_calibrated_exactly_once(prefect_harness, tmp_p
     assert second["drift"]["report"].startswith(str(reports / "drift"))
 
 
-def test_a_lab_campaign_is_verified_on_the_tick_after_its_capture_arrives(prefect_harness, tmp_path):
-    """A campaign without truth is calibrated once with its verification capture requested; the
-    ticks after wait for the capture, and the first one after the lab wrote it measures it (the
-    same input, calibrated again from the cache plus the capture); then nothing is left to do."""
+@flow(name="fake-calibrate")
+def lab_calibrate(campaign, results_root=None, detector="rrht", reports_root="reports", run=None,
+                  orientation="full", verification_repeats=1):
+    """calibrate_campaign's contract for a lab's campaign (the real one: test_flows_calibrate.py):
+    the capture requested until its manifest is there, then measured."""
+    capture = Path(campaign) / "captures" / "compensated-0123"
+    state = "measured" if (capture / "manifest.csv").is_file() else "requested"
+    capture.mkdir(parents=True, exist_ok=True)
+    (capture / "capture_plan.csv").write_text("image_id\nv0_v\n")
+    return {"report": f"{campaign}/report.html", "capture": str(capture), "capture_state": state}
+
+
+def test_a_lab_campaign_is_verified_on_the_tick_after_its_capture_arrives(prefect_harness, tmp_path, monkeypatch,
+                                                                         campaign_copy):
+    """A campaign calibrated with its verification capture requested waits for it over the ticks;
+    the first tick after the lab wrote it (and left it alone for the settle time) calibrates the
+    same input again, and then nothing is left to do."""
     watch, results, reports = tmp_path / "watch", tmp_path / "results", tmp_path / "reports"
     watch.mkdir()
-    simulated = write_campaign(tmp_path / "simulated", "lab1", seed=3, size="small", plan=PLAN)
-    lab = watch / "lab1"
-    shutil.copytree(simulated, lab, ignore=shutil.ignore_patterns("truth"))
+    campaign_copy("lab1").rename(watch / "lab1")
+    monkeypatch.setattr(recalibrate, "calibrate_campaign", lab_calibrate)
 
     first = tick(watch, results, reports)
     assert first["calibrated"] == ["lab1"] and first["awaiting_capture"] == ["lab1"]
     (record,) = Ledger.under(results).records()
-    capture = Path(record["capture"])
-    assert record["capture_state"] == "requested" and (capture / "capture_plan.csv").is_file()
-    waiting = tick(watch, results, reports)
-    assert (waiting["calibrated"], waiting["awaiting_capture"]) == ([], ["lab1"])
-
-    # the lab captures the plan (played here by the simulator, from the campaign's own truth)
-    plan = pd.read_csv(capture / "capture_plan.csv")
-    rendered = simulate_capture(simulated, tmp_path / "rendered", [i.removesuffix("_v") for i in plan.image_id],
-                                plan[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy())
-    shutil.copytree(rendered / "images", capture / "images")
-    shutil.copy(rendered / "manifest.csv", capture / "manifest.csv")
-    measured = tick(watch, results, reports)
-    assert (measured["calibrated"], measured["awaiting_capture"]) == (["lab1"], [])
-    assert [r["capture_state"] for r in Ledger.under(results).records()] == ["measured"]
-    after = read_table("verification", results, "lab1").query("phase == 'after'")
-    assert len(after) == len(plan) and set(after.source) == {"vbm"}
+    assert record["capture_state"] == "requested"
     assert tick(watch, results, reports)["calibrated"] == []
-    assert calibrate_runs(lab) == ["Completed", "Completed"]
+
+    (Path(record["capture"]) / "manifest.csv").write_text("image_id\n")  # the lab's capture arrives
+    settling = recalibrate.recalibrate_new_campaigns(str(watch), str(results), str(reports), settle_seconds=3600)
+    assert (settling["calibrated"], settling["awaiting_capture"]) == ([], ["lab1"])  # still being written?
+    measured = tick(watch, results, reports)
+    assert (measured["calibrated"], measured["awaiting_capture"], measured["already_calibrated"]) == (
+        ["lab1"], [], [])
+    assert [r["capture_state"] for r in Ledger.under(results).records()] == ["measured"]
+    again = tick(watch, results, reports)
+    assert (again["calibrated"], again["already_calibrated"]) == ([], ["lab1"])
 
 
 @flow(name="fake-calibrate")

@@ -33,7 +33,13 @@ from tasks.calibration_steps import (
     propagate_task,
     report_task,
 )
-from tasks.capture_request import capture_rows, check_capture_commands, has_capture, write_capture_request
+from tasks.capture_request import (
+    capture_rows,
+    check_capture_commands,
+    check_repeats,
+    has_capture,
+    write_capture_request,
+)
 from tasks.compensation import check_objective, compensation_table, desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
 from tasks.effects import load_effect_modules, parse_effect
@@ -110,8 +116,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     over all the poses in turn); the VBM's after figures average them, and their noise floor falls
     as 1/√n. Changing it re-renders and re-measures the capture only."""
     check_objective(orientation)  # before the image work and the fit, not after them
-    if int(verification_repeats) < 1:
-        raise ValueError(f"verification_repeats must be at least 1, got {verification_repeats!r}")
+    verification_repeats = check_repeats(verification_repeats)
     logger = get_run_logger()
     load_effect_modules(effect_modules or [])
     base = ErrorModel(effects=[parse_effect(s) for s in effects or []])
@@ -193,7 +198,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     provenance = {"fivecal_version": fivecal.__version__, "detector": detector, "campaign": str(folder),
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
                   "identification_code": IDENTIFICATION_CODE_VERSION, "effects": [e.spec() for e in base.effects],
-                  "orientation_objective": orientation, "verification_repeats": int(verification_repeats),
+                  "orientation_objective": orientation, "verification_repeats": verification_repeats,
                   "effect_modules": list(effect_modules or [])}
     pdge_table, pige_table = result.pdge.table, result.pige_table(propagated)
     compensation_rows = compensation_table(ids, commands, compensation)

@@ -36,18 +36,24 @@ COMMAND_TOLERANCE = {"X_mm": 1e-3, "Y_mm": 1e-3, "Z_mm": 1e-3, "A_deg": 1 / 3600
 rounding is 1e-6)."""
 
 
+def check_repeats(repeats: int) -> int:
+    """``repeats`` (images per verification pose) as an int; ValueError when it is below 1."""
+    if int(repeats) < 1:
+        raise ValueError(f"verification repeats must be at least 1, got {repeats!r}")
+    return int(repeats)
+
+
 def capture_rows(image_ids, commands: np.ndarray, camera: str, repeats: int = 1) -> pd.DataFrame:
     """The capture's images in order: ``repeats`` passes over the poses ``image_ids`` at
     ``commands`` (N, 5; mm and deg, AXIS_ORDER). Columns image_id, path, camera, stage, group,
     repeat, X_mm, Y_mm, Z_mm, A_deg, C_deg."""
-    if int(repeats) < 1:
-        raise ValueError(f"verification repeats must be at least 1, got {repeats!r}")
+    repeats = check_repeats(repeats)
     commands = np.asarray(commands, dtype=float)
-    names = [capture_image_id(i, r) for r in range(int(repeats)) for i in image_ids]
+    names = [capture_image_id(i, r) for r in range(repeats) for i in image_ids]
     rows = pd.DataFrame({"image_id": names, "path": [image_relpath(camera, n) for n in names], "camera": camera,
                          "stage": CAPTURE_STAGE, "group": CAPTURE_STAGE,
-                         "repeat": np.repeat(np.arange(int(repeats)), len(commands))})
-    for col, values in zip(COMMAND_COLUMNS, np.tile(commands, (int(repeats), 1)).T, strict=True):
+                         "repeat": np.repeat(np.arange(repeats), len(commands))})
+    for col, values in zip(COMMAND_COLUMNS, np.tile(commands, (repeats, 1)).T, strict=True):
         rows[col] = values
     return rows
 

@@ -53,7 +53,9 @@ FRAMES = {
     WORKPIECE: "tip position error: actual minus nominal tip position, in the workpiece (plate a) frame",
     TIP_ROTATION: "tip orientation error: the rotation vector of R_nominal⁻¹ R_actual",
     RESIDUAL_PLATE: "pose residual of eq. 20, e = log(T_model⁻¹ T_measured) = (v, ω): T_measured = T_model · "
-                    "exp(ê), v and ω in the plate frame (T_model: the fitted model's T_cam_plate)",
+                    "exp(ê), v and ω in the plate frame (T_model: the fitted model's T_cam_plate; for a camera "
+                    "outside the constant-parameter fit, completed by the constant poses of its chain's two ends, "
+                    "fitted to its images: tasks/residuals.py chain_constant_part)",
     RESIDUAL_CAMERA: "the plate-frame residual (v, ω) rotated into the camera frame by the measured T_cam_plate's "
                      "rotation (same point, the plate origin; no lever arm added)",
     TIP_MODEL: "tip where the measured plate pose puts it minus where the model puts it, plate (workpiece) frame; "
@@ -347,7 +349,7 @@ _TABLES = (
         _c("orientation_error_norm_arcsec", "float64", "arcsec", WORKPIECE,
            "mean ‖log(R_f⁻¹ R_true)‖ against the local PoE"),
         _s("note", "what the formulation leaves out"))),
-    TableSchema("residuals", 1, "image with a machine pose (camera_calibration views excluded)",
+    TableSchema("residuals", 2, "image with a machine pose (camera_calibration views excluded)",
                 "tasks/residuals.py pose_residual_table (fivecal calibrate)", (PARTITION, "image_id"),
                 _residual_columns()),
     TableSchema("dot_residuals", 1, "detected dot of an image with a measured pose",

@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from tasks import se3
 from tasks.camera_model import CameraModel, project_points
 from tasks.error_model import ARCSEC, UM, ErrorModel
 from tasks.identification.measurements import COMMAND_COLUMNS, Measurements
@@ -107,7 +108,10 @@ def pose_residual_table(machine: Machine, model: ErrorModel, meas: Measurements,
     - variables: X_mm … C_deg (commanded), time_s, temperature_c, approach_X … approach_C (−1, 0, +1:
       sign of the axis' last move), u_mean_px, v_mean_px, n_dots.
     - dx_um, dy_um, dz_um, rx_arcsec, ry_arcsec, rz_arcsec: e = log(T_model⁻¹ T_measured) (eq. 20),
-      v (µm) and ω (arcsec) in the plate frame; position_um = ‖v‖, orientation_arcsec = ‖ω‖.
+      v (µm) and ω (arcsec) in the plate frame; position_um = ‖v‖, orientation_arcsec = ‖ω‖. For a camera
+      other than ``IDENTIFICATION_CAMERA`` no parameter of the fit reaches the constant poses of its chain
+      (its mount, its plate's mount, and the gauge the fit chose for the axes it sees), so T_model is
+      completed by them first: e minus :func:`chain_constant_part`, fitted to that camera's images.
     - cam_*: the same (v, ω) rotated into the camera frame (R of the measured T_cam_plate).
     - white_*: W e with W = L⁻¹, L Lᵀ = C + C_floor (the fit's whitening,
       :func:`tasks.identification.pige_identification.whitening`); dimensionless. L is lower triangular,
@@ -117,7 +121,12 @@ def pose_residual_table(machine: Machine, model: ErrorModel, meas: Measurements,
     keep = (meas.table["stage"] != CALIBRATION_STAGE).to_numpy()
     m = meas.select(keep) if not keep.all() else meas
     e = pose_residuals(machine, model, m)  # (N, 6) mm, rad, plate frame
-    white = np.einsum("nij,nj->ni", whitening(m.cov), e)  # (N, 6)
+    W = whitening(m.cov)
+    cameras = m.table["camera"].to_numpy()
+    for camera in np.unique(cameras[cameras != IDENTIFICATION_CAMERA]):
+        rows = cameras == camera
+        e[rows] -= chain_constant_part(m.T[rows], e[rows], W[rows])
+    white = np.einsum("nij,nj->ni", W, e)  # (N, 6)
     R = m.T[:, :3, :3]  # (N, 3, 3) plate -> camera rotation
     e_cam = np.concatenate([np.einsum("nij,nj->ni", R, e[:, :3]), np.einsum("nij,nj->ni", R, e[:, 3:])], axis=1)
     t = m.table
@@ -141,6 +150,28 @@ def pose_residual_table(machine: Machine, model: ErrorModel, meas: Measurements,
     out[list(WHITE_COMPONENTS)] = white
     out["white_norm"] = np.linalg.norm(white, axis=1)
     return out[list(POSE_RESIDUAL_COLUMNS)]
+
+
+def chain_constant_part(T_cam_plate: np.ndarray, e: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """The part of one camera's pose residuals that constant poses at the two ends of its chain explain.
+
+    A constant error ξ_C of the camera's mount (camera frame) and ξ_P of its plate's mount (plate frame)
+    make T_measured = exp(ξ̂_C) T_model exp(ξ̂_P), so to first order e = Ad(T_model⁻¹) ξ_C + ξ_P: a constant in
+    the plate frame plus one that turns with the pose. For a camera whose images the constant-parameter
+    fit does not see, these 12 numbers are unknown, and so is the gauge the fit chose for the axes it
+    measures (moving an axis line moves both ends of the chain), which takes the same form.
+
+    T_cam_plate: (n, 4, 4) the camera's measured poses (mm). e: (n, 6) their residuals (v mm, ω rad; plate
+    frame). W: (n, 6, 6) whitening matrices (the fit's). Returns (n, 6): Ad(T⁻¹) ξ_C + ξ_P with (ξ_C, ξ_P)
+    the whitened least-squares fit (minimum norm where the poses leave a combination undetermined, e.g.
+    a turn about the one axis the chain rotates about). Same units and frame as ``e``.
+    """
+    design = np.concatenate([se3.adjoint(se3.inverse(T_cam_plate)), np.broadcast_to(np.eye(6), (len(e), 6, 6))],
+                            axis=2)  # (n, 6, 12): (ξ_C, ξ_P) -> e
+    A = np.einsum("nij,njk->nik", W, design).reshape(-1, 12)
+    b = np.einsum("nij,nj->ni", W, e).reshape(-1)
+    xi = np.linalg.lstsq(A, b, rcond=1e-10)[0]
+    return design @ xi
 
 
 def plates_of(machine: Machine, stage: str = "pige") -> dict[str, DotPlate]:

@@ -18,6 +18,7 @@ from tasks.identification.pige_identification import (
     IDENTIFICATION_CAMERA,
     IDENTIFICATION_STAGES,
     identify_pige,
+    pose_residuals,
     synthetic_measurements,
 )
 from tasks.lake_schema import TABLES, partition_problems
@@ -111,6 +112,39 @@ def test_true_model_on_exact_poses_leaves_zero_residual_with_every_variable_besi
     # the plate's position in the image: the mean of its 49 dots
     first = dots[dots.image_id == table.image_id.iloc[0]]
     assert table.u_mean_px.iloc[0] == pytest.approx(first.u_px.mean()) and table.n_dots.iloc[0] == 49
+
+
+def test_a_camera_outside_the_fit_is_taken_against_its_chain_completed_by_constant_mounts(machine, errors):
+    """Camera 2 takes no part in the constant-parameter fit, so nothing identifies its mount or its plate's.
+    Mount errors at both ends move its raw residual by micrometres along the A sweep (a once-per-turn
+    pattern, not a constant: centring would leave it); the stored residual completes the chain with them
+    and leaves zero, while a drift with time, which no constant mount can imitate, stays whole."""
+    plan, _ = plan_campaign(machine, replace(PLAN, sweep_repeats=4, pige_poses=30, validation_poses=5), 5)
+    frame = planned_measurements(plan, COV)
+    xi_camera = np.array([0.02, -0.015, 0.01, 30 * ARCSEC, -20 * ARCSEC, 45 * ARCSEC])  # mm, rad
+    xi_plate = np.array([-0.01, 0.025, 0.005, -40 * ARCSEC, 25 * ARCSEC, 10 * ARCSEC])
+    rate = 200.0  # µm/h
+    drift = parse_effect(f"thermal_drift:axis=X,driver=time,um_per_hour={rate:g}")
+    for truth in (errors, replace(errors, effects=[drift])):
+        exact = synthetic_measurements(machine, truth, frame)
+        cam2 = (exact.table.camera == "camera2").to_numpy()
+        T = exact.T.copy()
+        T[cam2] = se3.exp(xi_camera) @ T[cam2] @ se3.exp(xi_plate)
+        mounted = Measurements(exact.table, T, exact.cov, exact.context)
+        raw = pose_residuals(machine, errors, mounted) * 1e3  # µm, mrad·1e3
+        raw_centred = raw[cam2, :3] - raw[cam2, :3].mean(axis=0)
+        assert np.abs(raw_centred[:, 0]).max() > 1.5  # µm: what centring alone would leave
+        table = pose_residual_table(machine, errors, mounted)
+        c2 = table[table.camera == "camera2"]
+        camera1 = (table.camera == "camera1").to_numpy()  # the fit's camera: its residual as it is
+        np.testing.assert_allclose(table.loc[camera1, ["dx_um", "dy_um", "dz_um"]], raw[~cam2, :3], atol=1e-9)
+        assert np.abs(c2[["cam_dx_um", "cam_dy_um"]]).max().max() < 0.01  # µm
+        assert np.abs(c2[["rx_arcsec", "ry_arcsec", "rz_arcsec"]]).max().max() < 0.05
+        if truth.effects:  # X grows with time and carries camera 2 away from plate b along its line of sight
+            growth = rate * c2.time_s / 3600.0
+            np.testing.assert_allclose(c2.cam_dz_um, growth - growth.mean(), atol=0.01)
+        else:
+            assert np.abs(c2.cam_dz_um).max() < 0.01
 
 
 def test_whitened_residual_is_the_fit_whitening_first_component_the_plain_z_score(machine, errors, frame, noise):

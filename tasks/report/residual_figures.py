@@ -39,7 +39,6 @@ from tasks.residuals import (
     CATEGORICAL_VARIABLES,
     TREND_VARIABLES,
     binned_mean,
-    centred,
     trend_summary,
     worst_poses,
 )
@@ -60,8 +59,8 @@ def _stem(text: str) -> str:
 
 
 def _cameras_outside_fit(residuals: pd.DataFrame) -> list[str]:
-    """Cameras none of whose images enter the constant-parameter fit (their chain's constants are not
-    identified, so their residual carries a constant pose: centred before plotting)."""
+    """Cameras none of whose images enter the constant-parameter fit (their residuals are taken against
+    the model completed by their chain's constant poses: :func:`tasks.residuals.chain_constant_part`)."""
     fitted = residuals.groupby("camera")["used_in_fit"].any()
     return sorted(str(c) for c, f in fitted.items() if not f)
 
@@ -107,14 +106,12 @@ def _band_panel(ax, bins: pd.DataFrame, scale: float, categorical: bool) -> None
 
 
 def trend_figure(residuals: pd.DataFrame, camera: str, variables: Sequence[str] = TREND_VARIABLES,
-                 components: Sequence[str] = CAMERA_COMPONENTS, n_bins: int = 10, centre: bool = False) -> Figure:
+                 components: Sequence[str] = CAMERA_COMPONENTS, n_bins: int = 10) -> Figure:
     """Residual of ``camera`` against each variable (rows) for each component (columns): binned means
     (equal-count bins, or one per value for the approach directions) with the simultaneous 95 % band.
-    Variables that do not vary for the camera are left out. ``centre``: subtract each component's mean
-    first (a camera outside the fit). Red points / titles: bins whose band excludes zero."""
+    Variables that do not vary for the camera are left out. Red points / titles: bins whose band
+    excludes zero."""
     g = residuals[residuals["camera"].astype(str) == camera]
-    if centre:
-        g = centred(g, components)
     rows = _varying(g, variables)
     fig = _grid_figure(max(len(rows), 1), len(components))
     grid = fig.subplots(max(len(rows), 1), len(components), squeeze=False)
@@ -135,7 +132,7 @@ def trend_figure(residuals: pd.DataFrame, camera: str, variables: Sequence[str] 
                 for side in ax.spines.values():
                     side.set_edgecolor("C3")
     fig.suptitle(f"{camera}: pose residual (camera frame) against each variable — binned mean, simultaneous 95 % "
-                 f"band{'; centred (camera outside the fit)' if centre else ''}; red: band excludes zero", fontsize=9)
+                 "band; red: band excludes zero", fontsize=9)
     return fig
 
 
@@ -297,14 +294,13 @@ def residual_report(residuals: pd.DataFrame, dot_residuals: pd.DataFrame | None 
     sections: list[tuple[str, str]] = []
     figures: list[tuple[str, Figure]] = []
     outside = _cameras_outside_fit(residuals)
-    summary = trend_summary(residuals, n_bins=n_bins, centre=outside)
+    summary = trend_summary(residuals, n_bins=n_bins)
     names = []
     for camera in sorted(residuals["camera"].astype(str).unique()):
-        centre = camera in outside
         figures.append((f"residual_trends_{_stem(camera)}",
-                        trend_figure(residuals, camera, TREND_VARIABLES, n_bins=n_bins, centre=centre)))
+                        trend_figure(residuals, camera, TREND_VARIABLES, n_bins=n_bins)))
         figures.append((f"residual_approach_{_stem(camera)}",
-                        trend_figure(residuals, camera, CATEGORICAL_VARIABLES, centre=centre)))
+                        trend_figure(residuals, camera, CATEGORICAL_VARIABLES)))
         names += [f"`residual_trends_{_stem(camera)}`", f"`residual_approach_{_stem(camera)}`"]
     body = [
         "The pose residual of each image, e = log(T_model⁻¹ T_measured) (eq. 20), against everything it could "
@@ -317,8 +313,10 @@ def residual_report(residuals: pd.DataFrame, dot_residuals: pd.DataFrame | None 
         "held out of it (validation poses, sweeps of other cameras).",
     ]
     if outside:
-        body.append(f"Camera(s) {', '.join(outside)} take no part in the constant-parameter fit: the constant pose "
-                    "of their chain is not identified, so their residuals are centred (mean removed) before binning.")
+        body.append(f"Camera(s) {', '.join(outside)} take no part in the constant-parameter fit, so no parameter "
+                    "reaches the constant poses at the ends of their chain (camera mount, plate mount, and the gauge "
+                    "the fit chose for the axes they see). Their residuals are taken against the model completed by "
+                    "those 12 numbers, fitted to their own images: what is left is how they vary otherwise.")
     body.append("### Significant trends\n\n" + trends_markdown(summary))
     body.append(f"### Worst poses\n\nThe {n_worst} poses with the largest whitened residual norm ‖W e‖ (≈ √6 ≈ 2.4 "
                 "for a pose at its measurement noise):\n\n" + worst_poses_markdown(residuals, n_worst))

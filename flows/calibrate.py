@@ -245,4 +245,4 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
             "diagnosis": diagnosis.sentences, "diagnosis_best": diagnosis.best,
             "tables": tables, "cached": cached, "sigma2": fit.sigma2,
             "capture": str(capture_folder), "capture_state": capture_state,
-            "verification_means": summary_rows.round(3).reset_index().to_dict("records")}
+            "verification_means": summary_rows.reset_index().to_dict("records")}  # unrounded: no double rounding

@@ -19,10 +19,11 @@ structure from noise.
 Two tables (registered in :mod:`tasks.lake_schema`, documented in docs/residuals.md):
 
 - ``residuals``: one row per image with a machine pose (the ``camera_calibration`` views have none),
-  the six components of e = log(T_model⁻¹ T_measured) (eq. 20) in the plate frame (µm, arcsec), the
-  same rotated into the camera frame (``cam_*``), the whitened components the fit minimises, and the
-  variables: commands, time, temperature, approach direction per axis, camera, stage, group, repeat,
-  mean detected dot position (u, v px).
+  the six components of e = log(T_model⁻¹ T_measured) (eq. 20) in the plate frame (µm, arcsec; for a
+  camera outside the constant-parameter fit, against the model completed by its chain's constant
+  mounts, :func:`chain_constant_part`), the same rotated into the camera frame (``cam_*``), the
+  whitened components the fit minimises, and the variables: commands, time, temperature, approach
+  direction per axis, camera, stage, group, repeat, mean detected dot position (u, v px).
 - ``dot_residuals``: one row per detected dot of an image with a measured pose: detected centre minus
   the projection of the plate dot through the measured pose and the calibrated intrinsics (px). What
   PnP leaves: the image-space errors of the camera model (distortion it lacks, focal drift).

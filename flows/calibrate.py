@@ -38,6 +38,7 @@ from tasks.capture_request import (
     check_capture_commands,
     check_repeats,
     has_capture,
+    repeats_key,
     write_capture_request,
 )
 from tasks.compensation import check_objective, compensation_table, desired_tip_poses
@@ -161,9 +162,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                                                  validation.cov, VALIDATION_CAMERA).assign(repeats=1))}
     cached = {"measure": measured["cached"], "identify": ident.state.name == "Cached",
               "compensate": comp.state.name == "Cached"}
-    # one image per pose keeps the name it had before repeats existed (captures already on disk)
-    capture_id = "compensated-" + content_key(compensated.round(9).tolist(), *(
-        [verification_repeats] if verification_repeats != 1 else []))[:12]
+    capture_id = "compensated-" + content_key(compensated.round(9).tolist(), *repeats_key(verification_repeats))[:12]
     capture_folder = folder / "captures" / capture_id
     requested = capture_rows(ids, compensated, VALIDATION_CAMERA, verification_repeats)
     if simulated:

@@ -15,6 +15,7 @@ import pandas as pd
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
+from tasks.capture_request import repeats_key
 from tasks.compensation import Compensation, compensate
 from tasks.diagnosis.diagnose import DIAGNOSIS_CODE_VERSION
 from tasks.effects import EFFECTS
@@ -92,7 +93,7 @@ def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray, o
 @task(name="simulate-verification-capture", persist_result=True,
       cache_key_fn=lambda c, p: _key("capture", str(p["campaign_folder"]), str(p["out_folder"]),
                                      list(p["image_ids"]), np.round(p["commands"], 9).tolist(),
-                                     *([p["repeats"]] if p.get("repeats", 1) != 1 else [])))
+                                     *repeats_key(p.get("repeats", 1))))
 def capture_task(campaign_folder: Path, out_folder: Path, image_ids: list[str], commands: np.ndarray,
                  repeats: int = 1) -> str:
     """The simulator renders the follow-up capture at the compensated commands, ``repeats`` images

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tasks.campaign_io import MANIFEST_FILE, METADATA_FILE
+from tasks.capture_request import has_capture
 from tasks.ingest import CampaignError, load_campaign_metadata, load_manifest
 
 OUTPUT_DIRS = frozenset({"captures"})  # written into a campaign folder by the calibration itself
@@ -106,7 +107,7 @@ def capture_arrived(record: dict | None, settle_seconds: float, now: float | Non
     if not record or record.get("capture_state") != "requested" or not record.get("capture"):
         return False
     folder = Path(record["capture"])
-    return (folder / MANIFEST_FILE).is_file() and seconds_since_change(folder, now) >= settle_seconds
+    return has_capture(folder) and seconds_since_change(folder, now) >= settle_seconds
 
 
 def read_entry(folder: Path, now: float | None = None) -> CampaignEntry:

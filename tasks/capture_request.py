@@ -43,6 +43,12 @@ def check_repeats(repeats: int) -> int:
     return int(repeats)
 
 
+def repeats_key(repeats: int) -> list[int]:
+    """``repeats`` as a part of a content key (capture folder name, cache key): nothing for one image
+    per pose, so that the keys of captures from before repeats existed stay what they were."""
+    return [] if int(repeats) == 1 else [int(repeats)]
+
+
 def capture_rows(image_ids, commands: np.ndarray, camera: str, repeats: int = 1) -> pd.DataFrame:
     """The capture's images in order: ``repeats`` passes over the poses ``image_ids`` at
     ``commands`` (N, 5; mm and deg, AXIS_ORDER). Columns image_id, path, camera, stage, group,

@@ -23,6 +23,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
 
 DEMO_CAMPAIGN = Path("data/campaigns/demo")
+PLATE_A_PITCH_MM, PLATE_A_ROW_PITCH_MM = 9.0, 6.0  # `detect`'s default plate: the prototype's plate a
 # The temporary Prefect server would try to send telemetry; these machines have no network for it.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 # It starts in 10-20 s on 2 cores, later on a busy machine or with a new database, and Prefect
@@ -181,7 +182,10 @@ def detect(
     image: Annotated[Path, typer.Argument(help="an image file (any format OpenCV reads; converted to 8-bit grey)")],
     rows: Annotated[int, typer.Option(help="dot rows of the plate")] = 7,
     cols: Annotated[int, typer.Option(help="dot columns of the plate")] = 7,
-    pitch_mm: Annotated[float, typer.Option(help="centre-to-centre dot spacing (mm)")] = 5.0,
+    pitch_mm: Annotated[float, typer.Option(help="centre-to-centre dot spacing along a row (mm)")] = PLATE_A_PITCH_MM,
+    row_pitch_mm: Annotated[float | None, typer.Option(
+        help="spacing between rows (mm); default: 6.0 (the prototype's plate a) with the default --pitch-mm, "
+             "else equal to --pitch-mm (a square lattice)")] = None,
     diameter_mm: Annotated[float, typer.Option(help="dot diameter (mm)")] = 2.5,
     light_dots: Annotated[bool, typer.Option(help="light dots on a dark plate")] = False,
     detector: DetectorOption = "rrht",
@@ -206,7 +210,9 @@ def detect(
     grey = raw if raw.ndim == 2 else cv2.cvtColor(raw, cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if grey.dtype != np.uint8:
         grey = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots)
+    if row_pitch_mm is None:
+        row_pitch_mm = PLATE_A_ROW_PITCH_MM if pitch_mm == PLATE_A_PITCH_MM else pitch_mm
+    plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots, row_pitch_mm=row_pitch_mm)
     result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
     rc = plate.row_col()
     dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "residual_rms_px": float(q),

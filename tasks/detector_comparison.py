@@ -157,11 +157,12 @@ def prior_from_centres(uv: np.ndarray, plate: DotPlate) -> float:
 
 def symmetric_labellings(plate: DotPlate) -> list[np.ndarray]:
     """Index arrays A (rows*cols,) such that ``centres[A]`` relabels a row-major grid by one of the
-    lattice symmetries (the dihedral group: 4 rotations × flip, those keeping rows × cols)."""
+    lattice symmetries (the dihedral group: 4 rotations × flip, those keeping rows × cols and,
+    on a rectangular lattice, the row and column pitches)."""
     idx = np.arange(plate.rows * plate.cols).reshape(plate.rows, plate.cols)
     out: list[np.ndarray] = []
     for base in (idx, np.fliplr(idx)):
-        for k in range(4):
+        for k in range(4) if plate.is_square_lattice else (0, 2):
             a = np.rot90(base, k)
             if a.shape == idx.shape and not any(np.array_equal(a.ravel(), b) for b in out):
                 out.append(a.ravel().copy())

@@ -580,13 +580,13 @@ def _tile_view(img: np.ndarray, T: int) -> np.ndarray:
 
 def _nearest_dot_distance(X, Y, plate: DotPlate):
     """Distance (mm) and unit direction from the nearest dot centre to plate point (X, Y)."""
-    p = plate.pitch_mm
+    px, py = plate.pitch_mm, plate.pitch_y_mm
     oc = (plate.cols - 1) / 2.0
     orow = (plate.rows - 1) / 2.0
-    c = np.clip(np.rint(X / p + oc), 0, plate.cols - 1)
-    r = np.clip(np.rint(Y / p + orow), 0, plate.rows - 1)
-    dx = X - (c - oc) * p
-    dy = Y - (r - orow) * p
+    c = np.clip(np.rint(X / px + oc), 0, plate.cols - 1)
+    r = np.clip(np.rint(Y / py + orow), 0, plate.rows - 1)
+    dx = X - (c - oc) * px
+    dy = Y - (r - orow) * py
     return dx, dy, np.hypot(dx, dy)
 
 

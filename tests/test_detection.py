@@ -154,6 +154,26 @@ def test_non_square_grid_and_other_pitch_and_diameter():
     assert det0.ok and det0.orientation_ambiguous
 
 
+def test_a_rectangular_lattice_is_never_labelled_a_quarter_turn_off():
+    """7×7 dots 9 mm apart along a row and 6 mm between rows (the prototype's plate a): the
+    detector finds them under tilt and turned by 80°, and even without a rotation prior it only
+    hesitates between the two labellings a half turn apart, never the quarter turns that would
+    swap the long and short spacings (they fit a square lattice equally well)."""
+    plate = DotPlate(7, 7, 9.0, 2.5, dark_dots=True, margin_mm=5.0, name="a-rect", row_pitch_mm=6.0)
+    cam = small(CAM1)
+    T = pose([2.0, -1.0, 300.0], 12.0, -8.0, 80.0)
+    img = render_plate_image(cam, plate, T, ImagingConditions(), seed=5)
+    truth = true_dot_centres(cam, plate, T)
+    det = detect_grid(img, plate, "rrht", expected_rotation_deg=85.0)
+    assert det.ok and not det.orientation_ambiguous, det.reason
+    assert np.max(np.linalg.norm(det.centres - truth, axis=1)) < 0.1
+    det0 = detect_grid(img, plate, "rrht")
+    assert det0.ok and det0.orientation_ambiguous
+    half_turn = truth[::-1]  # row-major order reversed: the same lattice labelled from the far corner
+    off = min(np.max(np.linalg.norm(det0.centres - t, axis=1)) for t in (truth, half_turn))
+    assert off < 0.1
+
+
 def test_light_dots_on_a_dark_plate():
     plate = dataclasses.replace(PLATE_A, dark_dots=False, name="a-light")
     cam = small(CAM1)

@@ -36,6 +36,7 @@ CAM1 = CameraModel(3072, 2048, 0.0024, 16.0, 1535.7, 1023.2, DIST, focus_distanc
 CAM2 = CameraModel(3072, 2048, 0.0024, 16.0, 1538.1, 1020.6, DIST, focus_distance_mm=80.0, f_number=8.0)
 PLATE_A = DotPlate(7, 7, 5.0, 2.5, dark_dots=True, margin_mm=5.0, name="a")
 PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=3.0, name="b")
+PLATE_RECT = DotPlate(7, 7, 9.0, 2.5, dark_dots=True, margin_mm=5.0, name="rect", row_pitch_mm=6.0)
 IDEAL = ImagingConditions.ideal()
 
 
@@ -64,7 +65,7 @@ def centroids(img: np.ndarray, centres: np.ndarray, half: int, background: float
 def window_half(camera: CameraModel, plate: DotPlate, z_mm: float) -> int:
     """Half window: dot radius + blur margin, well short of the neighbouring dots (px)."""
     scale = camera.fx_px / z_mm  # px per mm
-    return round(scale * (plate.dot_diameter_mm / 2 + 0.3 * (plate.pitch_mm - plate.dot_diameter_mm)))
+    return round(scale * (plate.dot_diameter_mm / 2 + 0.3 * (plate.pitch_range_mm[0] - plate.dot_diameter_mm)))
 
 
 def ellipse_centres(camera: CameraModel, plate: DotPlate, T: np.ndarray) -> np.ndarray:
@@ -88,8 +89,8 @@ def ellipse_centres(camera: CameraModel, plate: DotPlate, T: np.ndarray) -> np.n
 
 @pytest.mark.parametrize(
     ("camera", "plate", "T"),
-    [(CAM1, PLATE_A, POSE_A), (CAM2, PLATE_B, POSE_B)],
-    ids=["cam1-plate_a", "cam2-plate_b"],
+    [(CAM1, PLATE_A, POSE_A), (CAM2, PLATE_B, POSE_B), (CAM1, PLATE_RECT, POSE_A)],
+    ids=["cam1-plate_a", "cam2-plate_b", "cam1-rectangular"],
 )
 @pytest.mark.parametrize("factor", [1, 4], ids=["full", "reduced"])
 def test_centroid_matches_projected_centre_near_frontal(camera, plate, T, factor):

@@ -33,7 +33,7 @@ def test_each_image_names_the_plate_it_shows(tiny_campaign):
                         manifest["camera"].map({"camera1": "plate_a", "camera2": "plate_b"}))
     assert names.tolist() == expected.tolist()
     assert plates_by_camera(meta, "camera_calibration")["camera1"].pitch_mm == 9.0
-    assert plates_by_camera(meta)["camera1"].pitch_mm == 5.0
+    assert (plates_by_camera(meta)["camera1"].pitch_mm, plates_by_camera(meta)["camera1"].pitch_y_mm) == (9.0, 6.0)
     machine = load_machine("prototype")
     assert [machine.plate_seen(c, s) for c, s in zip(manifest.camera, manifest.stage, strict=True)] == names.tolist()
 

@@ -103,7 +103,7 @@ def detect_hough(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: f
         return GridDetection.failure(plate.rows * plate.cols, "hough", f"{100 * density:.0f}% of the pixels "
                                      "are edges: noise or texture, no Hough search",
                                      elapsed_s=time.perf_counter() - t0, timings_s={})
-    spacing_min = d_min * plate.pitch_mm / plate.dot_diameter_mm * 0.6
+    spacing_min = d_min * plate.pitch_range_mm[0] / plate.dot_diameter_mm * 0.6
     circles = cv2.HoughCircles(med, cv2.HOUGH_GRADIENT, dp=1, minDist=max(spacing_min, 2.0), param1=100,
                                param2=max(10.0, 0.3 * np.pi * d_min / 2), minRadius=int(d_min / 2),
                                maxRadius=int(np.ceil(d_max / 2)))

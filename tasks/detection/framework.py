@@ -106,7 +106,7 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         return fail(order.reason, n_candidates=len(circles))
     idx = order.index
     c0 = coarse_to_full(circles.centres[idx], factor)
-    gap_ratio = plate.pitch_mm / plate.dot_diameter_mm - 1.0
+    gap_ratio = plate.pitch_range_mm[0] / plate.dot_diameter_mm - 1.0
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
                            gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
     rc = plate.row_col()

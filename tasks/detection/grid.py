@@ -12,7 +12,9 @@ Frames: image px (u right, v down). Plate rows/cols as in :class:`tasks.plate.Do
 3. *Window*: the rows × cols (or cols × rows) window of the lattice must be complete and unique;
    otherwise the view is rejected with a reason (out of view, missing dots, extra dots).
 4. *Orientation*: of the 8 symmetries of a rectangle, the physical handedness (the camera looks
-   at the printed face, plate +Z towards the camera) leaves 4 for a square grid and 2 otherwise.
+   at the printed face, plate +Z towards the camera) leaves 4 for a square grid and 2 otherwise
+   (a grid of unequal row and column counts, or of unequal row and column pitches: the longer
+   spacing in the image must be the plate's longer one).
    The in-plane rotation angle of the plate's +X (column) axis in the image is measured
    counter-clockwise on screen from +u, i.e. ``atan2(−dv, du)`` in degrees; the candidate
    closest to ``expected_rotation_deg`` wins, or the one closest to 0° without a prior (then the
@@ -61,12 +63,13 @@ def _axis_directions(vec: np.ndarray) -> tuple[float, float] | None:
     return (i1 + 0.5) * np.pi / nb, (i2 + 0.5) * np.pi / nb
 
 
-def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: float,
+def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: float | tuple[float, float],
                   max_seeds: int = 4, min_points: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Integer lattice coordinates of the points reachable from the best seed.
 
     points: (N, 2) px; sizes: (N,) dot diameters px (None: use the median link length);
-    spacing_ratio: pitch / diameter of the plate. Returns (mn (N, 2) int, assigned (N,) bool);
+    spacing_ratio: pitch / diameter of the plate, or (smallest, largest) of the row and column
+    pitches / diameter for a rectangular lattice. Returns (mn (N, 2) int, assigned (N,) bool);
     among up to ``max_seeds`` seeds the largest lattice wins (stop at one of ``min_points``).
     """
     n = len(points)
@@ -78,8 +81,8 @@ def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: f
     dist, idx = tree.query(points, k=kq)
     dist, idx = dist[:, 1:], idx[:, 1:]
     if sizes is not None:
-        expect = sizes * spacing_ratio  # (N,)
-        lo, hi = 0.5 * expect, 1.35 * expect
+        ratio_lo, ratio_hi = np.broadcast_to(np.asarray(spacing_ratio, dtype=float), (2,))
+        lo, hi = 0.5 * ratio_lo * sizes, 1.35 * ratio_hi * sizes  # (N,)
         size_ok = (sizes[idx] < 1.45 * sizes[:, None]) & (sizes[idx] > sizes[:, None] / 1.45)
     else:
         med = np.median(dist[:, 0])
@@ -225,7 +228,7 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     if len(points) == 0:
         return _fail(plate, "no dot candidates found")
     mn, assigned = lattice if lattice is not None else build_lattice(
-        points, sizes, plate.pitch_mm / plate.dot_diameter_mm, min_points=need)
+        points, sizes, tuple(p / plate.dot_diameter_mm for p in plate.pitch_range_mm), min_points=need)
     sel = np.flatnonzero(assigned)
     if len(sel) < 4:
         return _fail(plate, f"no dot lattice found among {len(points)} candidates (expected {rows}x{cols})")
@@ -282,6 +285,8 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
         cross = dcol[0] * drow[1] - dcol[1] * drow[0]
         if (cross < 0) == mirrored:
             continue
+        if not plate.is_square_lattice and (np.hypot(*dcol) > np.hypot(*drow)) != (plate.pitch_mm > plate.pitch_y_mm):
+            continue  # a quarter turn would swap the plate's long and short spacings
         ang = float(np.degrees(np.arctan2(-dcol[1], dcol[0])))
         cands.append((ang, rc))
     if not cands:

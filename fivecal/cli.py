@@ -23,7 +23,6 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
 
 DEMO_CAMPAIGN = Path("data/campaigns/demo")
-PLATE_A_PITCH_MM, PLATE_A_ROW_PITCH_MM = 9.0, 6.0  # `detect`'s default plate: the prototype's plate a
 # The temporary Prefect server would try to send telemetry; these machines have no network for it.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 # It starts in 10-20 s on 2 cores, later on a busy machine or with a new database, and Prefect
@@ -182,9 +181,10 @@ def detect(
     image: Annotated[Path, typer.Argument(help="an image file (any format OpenCV reads; converted to 8-bit grey)")],
     rows: Annotated[int, typer.Option(help="dot rows of the plate")] = 7,
     cols: Annotated[int, typer.Option(help="dot columns of the plate")] = 7,
-    pitch_mm: Annotated[float, typer.Option(help="centre-to-centre dot spacing along a row (mm)")] = PLATE_A_PITCH_MM,
+    pitch_mm: Annotated[float | None, typer.Option(
+        help="centre-to-centre dot spacing along a row (mm); default: the prototype's plate a (9.0)")] = None,
     row_pitch_mm: Annotated[float | None, typer.Option(
-        help="spacing between rows (mm); default: 6.0 (the prototype's plate a) with the default --pitch-mm, "
+        help="spacing between rows (mm); default: the prototype's plate a (6.0) without --pitch-mm, "
              "else equal to --pitch-mm (a square lattice)")] = None,
     diameter_mm: Annotated[float, typer.Option(help="dot diameter (mm)")] = 2.5,
     light_dots: Annotated[bool, typer.Option(help="light dots on a dark plate")] = False,
@@ -199,6 +199,7 @@ def detect(
     import numpy as np
 
     from tasks.detection import DETECTORS, detect_grid
+    from tasks.machine import load_machine
     from tasks.plate import DotPlate
 
     if detector not in DETECTORS:
@@ -210,8 +211,11 @@ def detect(
     grey = raw if raw.ndim == 2 else cv2.cvtColor(raw, cv2.COLOR_BGRA2GRAY if raw.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     if grey.dtype != np.uint8:
         grey = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
-    if row_pitch_mm is None:
-        row_pitch_mm = PLATE_A_ROW_PITCH_MM if pitch_mm == PLATE_A_PITCH_MM else pitch_mm
+    if pitch_mm is None:  # the default plate: the prototype's plate a, as its machine description gives it
+        plate_a = load_machine("prototype").plates["plate_a"]
+        pitch_mm = plate_a.pitch_mm
+        row_pitch_mm = plate_a.pitch_y_mm if row_pitch_mm is None else row_pitch_mm
+    row_pitch_mm = pitch_mm if row_pitch_mm is None else row_pitch_mm
     plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots, row_pitch_mm=row_pitch_mm)
     result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
     rc = plate.row_col()

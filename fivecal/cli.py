@@ -214,8 +214,7 @@ def detect(
     if pitch_mm is None:  # the default plate: the prototype's plate a, as its machine description gives it
         plate_a = load_machine("prototype").plates["plate_a"]
         pitch_mm = plate_a.pitch_mm
-        row_pitch_mm = plate_a.pitch_y_mm if row_pitch_mm is None else row_pitch_mm
-    row_pitch_mm = pitch_mm if row_pitch_mm is None else row_pitch_mm
+        row_pitch_mm = plate_a.row_pitch_mm if row_pitch_mm is None else row_pitch_mm
     plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots, row_pitch_mm=row_pitch_mm)
     result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
     rc = plate.row_col()

@@ -277,9 +277,10 @@ def trend_summary(residuals: pd.DataFrame, components: Sequence[str] = CAMERA_CO
     """For each camera × variable × component: does the residual follow the variable?
 
     residuals: the ``residuals`` table. centre: cameras whose residual is centred first (its mean over
-    the camera's images subtracted per component): a camera outside the fit carries the constant pose of
-    its chain, which no parameter absorbs and which is not structure. Variables that do not vary for a
-    camera are skipped.
+    the given images subtracted per component): for a subset of a camera's images (one stage, say) whose
+    mean the fit did not hold at zero. A camera outside the fit needs none: its residuals are already
+    taken against its chain's constant mounts (:func:`chain_constant_part`). Variables that do not vary
+    for a camera are skipped.
 
     Returns camera, variable, component, n_bins, max_abs_mean (largest |bin mean|, the component's unit),
     span (max − min of the bin means), significant (some bin's simultaneous ``confidence`` band excludes

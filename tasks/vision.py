@@ -7,10 +7,11 @@ call them directly.
   shows — a camera's calibration target in its camera_calibration views, the plate it measures
   otherwise (``Machine.plate_seen``) — and the plates themselves.
 - :func:`with_detection_inputs`: the images table with each image's plate and expected rotation.
-- :func:`expected_rotations`: the in-plane angle at which each plate should appear, from the
-  *nominal* kinematics at the commanded axes. It resolves the 90°/180° symmetry of a square grid;
-  calibration views (plate on a fixture, any rotation) get none, and any symmetric labelling is
-  equally valid for self-calibration.
+- :func:`expected_homographies`, :func:`expected_rotations`: where each plate's dots should appear
+  and at what in-plane angle, from the *nominal* kinematics at the commanded axes. The angle
+  resolves the 90°/180° symmetry of a square grid; the dots' positions let a plate partly out of
+  the image be measured on the dots inside it. Calibration views (plate on a fixture, any
+  rotation) get neither, and any symmetric labelling is equally valid for self-calibration.
 - :func:`detect_images`: dot centres of a chunk of images (the ``dots`` table).
 - :func:`calibrate_cameras`: per camera, the trials of Table 3 and a joint best estimate
   (the ``camera_calibration`` table).
@@ -30,8 +31,9 @@ import numpy as np
 import pandas as pd
 
 from tasks.camera_calibration import calibrate_camera, nominal_camera, trial_views
-from tasks.camera_model import CameraModel, project_points
+from tasks.camera_model import CameraModel
 from tasks.detection import detect_grid
+from tasks.detection.perspective import project
 from tasks.kinematics import forward
 from tasks.machine import CALIBRATION_STAGE, Machine, machine_from_dict, plate_seen
 from tasks.plate import DotPlate
@@ -39,9 +41,11 @@ from tasks.poses import estimate_poses
 
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
 # every cache key of the measure flow.
-VISION_CODE_VERSION = "vision-6"
+VISION_CODE_VERSION = "vision-7"
 COMMANDS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
+PRIOR_COLUMNS = tuple(f"prior_h{i}{j}" for i in range(3) for j in range(3))
+"""Columns of the predicted plate → image homography that detection takes (:func:`with_detection_inputs`)."""
 DETECTION_COLUMNS = ("image_id", "camera", "plate", "detection_status", "detection_message", "rotation_deg",
                      "elapsed_ms")
 
@@ -95,30 +99,46 @@ def nominal_machine(metadata: dict) -> Machine:
                               "calibration_targets": metadata.get("calibration_targets", {})})
 
 
-def expected_rotations(metadata: dict, images: pd.DataFrame) -> pd.Series:
-    """Expected in-plane angle (deg, counter-clockwise on screen from +u) of each plate's +X axis.
-
-    From the nominal kinematics at the commanded axes; NaN for camera_calibration views.
+def expected_homographies(metadata: dict, images: pd.DataFrame) -> np.ndarray:
+    """(N, 3, 3) plate (x, y) mm → image px homography of each image's plate, predicted from the
+    commanded axes through the *nominal* kinematics and the nominal camera (pinhole, no
+    distortion: H = K [r₁ r₂ t]); NaN for camera_calibration views and unknown cameras.
     images: rows of the images table (camera, stage, X_mm ... C_deg).
+
+    The machine's geometric errors and the lens move the real dots by a small part of the pitch;
+    detection only needs each dot's prediction to fall nearer its own dot than any other.
     """
-    out = pd.Series(np.nan, index=images.index, dtype=float)
+    out = np.full((len(images), 3, 3), np.nan)
     machine = nominal_machine(metadata)
-    for camera, g in images[images["stage"] != CALIBRATION_STAGE].groupby("camera"):
+    measured = np.flatnonzero((images["stage"] != CALIBRATION_STAGE).to_numpy())
+    for camera, g in images.iloc[measured].groupby("camera"):
         if camera not in machine.cameras:
             continue
-        T = forward(machine, g[list(COMMANDS)].to_numpy(float)).camera_view(camera)  # (N, 4, 4)
-        pitch = machine.plates[machine.views[camera]].pitch_mm
-        pts = np.stack([T[:, :3, 3], T[:, :3, 3] + pitch * T[:, :3, 0]], axis=1)  # origin, +X, camera frame
-        uv = project_points(pts, machine.cameras[camera])
-        d = uv[:, 1] - uv[:, 0]
-        out.loc[g.index] = np.degrees(np.arctan2(-d[:, 1], d[:, 0]))
+        T = forward(machine, g[list(COMMANDS)].to_numpy(float)).camera_view(camera)  # (N, 4, 4) T_cam_plate
+        H = machine.cameras[camera].matrix @ T[:, :3][:, :, [0, 1, 3]]
+        out[images.index.get_indexer(g.index)] = H / H[:, 2:, 2:]
     return out
+
+
+def expected_rotations(metadata: dict, images: pd.DataFrame) -> pd.Series:
+    """Expected in-plane angle (deg, counter-clockwise on screen from +u) of each plate's +X axis
+    at the plate's centre, from :func:`expected_homographies`; NaN for camera_calibration views.
+    images: rows of the images table (camera, stage, X_mm ... C_deg).
+    """
+    H = expected_homographies(metadata, images)
+    origin = H[:, :2, 2] / H[:, 2:, 2]
+    along_x = (H[:, :2, 0] + H[:, :2, 2]) / (H[:, 2:, 0] + H[:, 2:, 2])  # the plate point (1 mm, 0)
+    d = along_x - origin
+    return pd.Series(np.degrees(np.arctan2(-d[:, 1], d[:, 0])), index=images.index, dtype=float)
 
 
 def with_detection_inputs(metadata: dict, images: pd.DataFrame) -> pd.DataFrame:
     """``images`` with what detection needs beside each image: ``rotation_deg``
-    (:func:`expected_rotations`) and ``plate`` (:func:`plate_names`)."""
-    return images.assign(rotation_deg=expected_rotations(metadata, images), plate=plate_names(metadata, images))
+    (:func:`expected_rotations`), ``plate`` (:func:`plate_names`) and the predicted homography in
+    :data:`PRIOR_COLUMNS` (:func:`expected_homographies`, row-major, scaled to h22 = 1)."""
+    H = expected_homographies(metadata, images).reshape(len(images), 9)
+    return images.assign(rotation_deg=expected_rotations(metadata, images), plate=plate_names(metadata, images),
+                         **{c: H[:, k] for k, c in enumerate(PRIOR_COLUMNS)})
 
 
 def detection_chunks(images: pd.DataFrame, chunk_size: int) -> list[pd.DataFrame]:
@@ -132,13 +152,18 @@ def detect_images(folder: Path, rows: pd.DataFrame, plates: Mapping[str, DotPlat
     """Detect the dot grid in each image of ``rows``.
 
     rows: images-table rows with image_id, camera, path, ``plate`` (the name of the plate the image
-    shows, :func:`plate_names`) and ``rotation_deg`` (expected, NaN = none). plates: {plate name:
-    DotPlate} (:func:`campaign_plates`).
-    Returns (dots, detections): dots has one row per found dot (DOT_COLUMNS, px); detections one
-    row per image with its status ("ok" or "no_grid"), message naming the file, and timing.
+    shows, :func:`plate_names`), ``rotation_deg`` (expected, NaN = none) and, optionally, the
+    predicted homography (:data:`PRIOR_COLUMNS`, NaN = none), with which a plate partly out of the
+    image is measured on the dots wholly inside it. plates: {plate name: DotPlate}
+    (:func:`campaign_plates`).
+    Returns (dots, detections): dots has one row per measured dot (DOT_COLUMNS, px); detections one
+    row per image with its status ("ok" or "no_grid"), message naming the file (for an ok
+    partial view: how many dots were measured), and timing.
     """
     dots, detections = [], []
-    for r in rows.itertuples(index=False):
+    priors = (rows[list(PRIOR_COLUMNS)].to_numpy(float).reshape(-1, 3, 3) if set(PRIOR_COLUMNS) <= set(rows.columns)
+              else np.full((len(rows), 3, 3), np.nan))
+    for r, H in zip(rows.itertuples(index=False), priors, strict=True):
         plate = plates.get(r.plate)
         path = Path(folder) / r.path
         t0 = time.perf_counter()
@@ -149,18 +174,22 @@ def detect_images(folder: Path, rows: pd.DataFrame, plates: Mapping[str, DotPlat
             status, message, res = "no_grid", f"{r.path}: could not be read", None
         else:
             prior = None if np.isnan(r.rotation_deg) else float(r.rotation_deg)
-            res = detect_grid(image, plate, detector, expected_rotation_deg=prior)
+            expected = project(H, plate.dot_centres_mm()[:, :2]) if np.isfinite(H).all() else None
+            res = detect_grid(image, plate, detector, expected_rotation_deg=prior, expected_centres_px=expected)
             status = "ok" if res.ok else "no_grid"
-            message = "" if res.ok else f"{r.path}: {res.reason}"
+            n_found, n_dots = int(res.found.sum()), plate.rows * plate.cols
+            message = (f"{r.path}: {res.reason}" if not res.ok else "" if n_found == n_dots
+                       else f"{r.path}: partial view, {n_found} of {n_dots} dots wholly in the image")
         elapsed = 1e3 * (time.perf_counter() - t0)
         detections.append((r.image_id, r.camera, r.plate, status, message,
                            float("nan") if res is None else res.rotation_deg, elapsed))
         if res is not None and res.ok:
-            rc = plate.row_col()
+            k = res.found
+            rc = plate.row_col()[k]
             dots.append(pd.DataFrame({
                 "image_id": r.image_id, "camera": r.camera, "row": rc[:, 0], "col": rc[:, 1],
-                "u_px": res.centres[:, 0], "v_px": res.centres[:, 1],
-                "residual_rms_px": res.residual_rms_px, "support_ratio": res.support_ratio, "detector": detector,
+                "u_px": res.centres[k, 0], "v_px": res.centres[k, 1],
+                "residual_rms_px": res.residual_rms_px[k], "support_ratio": res.support_ratio[k], "detector": detector,
             }))
     dots_df = pd.concat(dots, ignore_index=True) if dots else pd.DataFrame(columns=list(DOT_COLUMNS))
     return dots_df, pd.DataFrame(detections, columns=list(DETECTION_COLUMNS))

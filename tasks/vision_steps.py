@@ -33,7 +33,7 @@ from tasks.camera_model import CameraModel
 from tasks.machine import CALIBRATION_STAGE
 from tasks.plate import DotPlate
 from tasks.results_lake import read_table, write_partition
-from tasks.vision import calibrate_cameras, content_key, detect_images, plate_poses
+from tasks.vision import PRIOR_COLUMNS, calibrate_cameras, content_key, detect_images, plate_poses
 
 _numeric_lock = threading.Lock()
 _numeric_users = 0
@@ -65,7 +65,9 @@ def one_numeric_thread() -> Iterator[None]:
 
 
 def _detect_key(context: TaskRunContext, p: dict[str, Any]) -> str:
-    rows = p["rows"][["image_id", "camera", "plate", "content_sha256", "rotation_deg"]].round({"rotation_deg": 6})
+    prior = [c for c in PRIOR_COLUMNS if c in p["rows"].columns]
+    rows = p["rows"][["image_id", "camera", "plate", "content_sha256", "rotation_deg", *prior]].round(
+        {"rotation_deg": 6, **dict.fromkeys(prior, 9)})
     plates = {c: pl.to_dict() for c, pl in p["plates"].items()}
     return "detect-" + content_key(rows, plates, p["detector"])
 

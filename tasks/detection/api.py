@@ -9,8 +9,8 @@ SYNOPSIS
 
 Every detector takes an (H, W) uint8 grayscale image and a :class:`tasks.plate.DotPlate` and
 returns a :class:`tasks.detection.result.GridDetection`; it never raises on image *content*
-(blank, saturated, noise, partial views come back with ``ok=False`` and a reason), only on a
-wrong input type (ValueError).
+(blank, saturated, noise, a plate partly out of view without a prediction of its dots come back
+with ``ok=False`` and a reason), only on a wrong input type (ValueError).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ DETECTORS: dict[str, Callable[..., GridDetection]] = {
 
 def detect_grid(image: np.ndarray, plate: DotPlate, detector: str = "rrht", *,
                 expected_rotation_deg: float | None = None, px_per_mm_hint: float | None = None,
-                mirrored: bool = False) -> GridDetection:
+                mirrored: bool = False, expected_centres_px: np.ndarray | None = None) -> GridDetection:
     """Find the plate's rows × cols dots in ``image`` and order them like ``plate.dot_centres_mm()``.
 
     detector: "rrht" (the paper's framework, sub-pixel and perspective-corrected), "blob"
@@ -44,10 +44,14 @@ def detect_grid(image: np.ndarray, plate: DotPlate, detector: str = "rrht", *,
     taken and ``orientation_ambiguous`` is set for symmetric grids.
     px_per_mm_hint: approximate image scale on the plate (px per mm), optional.
     mirrored: the plate is seen from its back (handedness flipped).
+    expected_centres_px: (rows*cols, 2) predicted dot positions (px), e.g. from the commanded axes
+    through the nominal kinematics; with them "rrht" measures a plate partly out of the image on
+    the dots wholly inside it (the others NaN; :mod:`tasks.detection.partial_view`). The
+    baselines need the whole grid.
     """
     try:
         fn = DETECTORS[detector]
     except KeyError:
         raise ValueError(f"unknown detector {detector!r}; choose one of {sorted(DETECTORS)}") from None
     return fn(image, plate, expected_rotation_deg=expected_rotation_deg, px_per_mm_hint=px_per_mm_hint,
-              mirrored=mirrored)
+              mirrored=mirrored, expected_centres_px=expected_centres_px)

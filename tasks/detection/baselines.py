@@ -7,7 +7,9 @@
   lattice ordering as the RRHT framework.
 
 Both return raw centres (blob centroids / Hough centres): no sub-pixel rim fit and no
-perspective-bias correction. Units: px.
+perspective-bias correction, and both need the whole grid in view: they take the predicted dot
+positions (``expected_centres_px``) for a common signature but do not measure partial views.
+Units: px.
 """
 
 from __future__ import annotations
@@ -61,7 +63,8 @@ def _finish(name: str, plate: DotPlate, centres_found: np.ndarray, order, t0: fl
 
 
 def detect_blob(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
-                px_per_mm_hint: float | None = None, mirrored: bool = False) -> GridDetection:
+                px_per_mm_hint: float | None = None, mirrored: bool = False,
+                expected_centres_px: np.ndarray | None = None) -> GridDetection:
     """``cv2.findCirclesGrid`` baseline; see the module docstring."""
     t0 = time.perf_counter()
     image = check_image(image)
@@ -88,7 +91,7 @@ def detect_blob(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
 
 def detect_hough(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
                  px_per_mm_hint: float | None = None, mirrored: bool = False,
-                 max_edge_density: float = 0.05) -> GridDetection:
+                 expected_centres_px: np.ndarray | None = None, max_edge_density: float = 0.05) -> GridDetection:
     """``cv2.HoughCircles`` baseline; see the module docstring.
 
     Images where more than ``max_edge_density`` of the pixels are Canny edges are refused.

@@ -23,11 +23,12 @@ import numpy as np
 from tasks.detection.chaincode import filter_edges
 from tasks.detection.edges import canny_edges
 from tasks.detection.grid import order_grid
+from tasks.detection.partial_view import MIN_FRACTION
 from tasks.detection.perspective import correct_bias, fit_homography
-from tasks.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample
+from tasks.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
 from tasks.detection.result import GridDetection
 from tasks.detection.rrht import RRHTParams, rrht_circles
-from tasks.detection.subpixel import SubpixelParams, refine_ellipses
+from tasks.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
 from tasks.plate import DotPlate
 
 
@@ -41,6 +42,17 @@ class FrameworkParams:
     seed: int = 0
     rrht: RRHTParams = field(default_factory=RRHTParams)
     subpixel: SubpixelParams = field(default_factory=SubpixelParams)
+
+
+def cut_by_border(centres_px: np.ndarray, major_semi_axes_px: np.ndarray, gap_ratio: float,
+                  image_shape: tuple[int, int]) -> np.ndarray:
+    """(K,) bool: dots (centres (K, 2) px, major semi-axes (K,) px) whose rim rays
+    (:func:`tasks.detection.subpixel.rim_reach_px`), plus 2 px, would leave an image of
+    ``image_shape`` (H, W): the border cuts what their rim fit needs."""
+    h, w = image_shape
+    reach = rim_reach_px(major_semi_axes_px, gap_ratio) + 2.0
+    u, v = centres_px[:, 0], centres_px[:, 1]
+    return (u < reach) | (u > w - 1 - reach) | (v < reach) | (v > h - 1 - reach)
 
 
 def search_scale(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float | None,
@@ -61,7 +73,8 @@ def search_scale(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float 
 
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
                 px_per_mm_hint: float | None = None, correct_perspective: bool = True,
-                mirrored: bool = False, params: FrameworkParams | None = None) -> GridDetection:
+                mirrored: bool = False, expected_centres_px: np.ndarray | None = None,
+                params: FrameworkParams | None = None) -> GridDetection:
     """Detect and order the plate's dots with the RRHT framework (see module docstring).
 
     image: (H, W) uint8 grayscale. plate: the expected plate (rows, cols, pitch, diameter,
@@ -69,6 +82,11 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     screen, deg) that resolves the grid's rotational symmetry. px_per_mm_hint: approximate scale
     on the plate (px/mm); speeds up and hardens the search. correct_perspective: subtract the
     perspective bias of circle centres. mirrored: the plate is seen from its back.
+    expected_centres_px: (rows*cols, 2) predicted dot positions (full-size px); with them a plate
+    partly out of the image is measured on the dots inside it (:mod:`tasks.detection.partial_view`),
+    and a dot whose rim rays the image border would cut (:func:`cut_by_border`) is left out.
+    Without them the whole grid must be found and a dot at the border is fitted on the rays
+    inside the image (calibration views, where the target fills the field).
     """
     p = params or FrameworkParams()
     t_start = time.perf_counter()
@@ -99,35 +117,50 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         return fail(f"found {len(circles)} circular targets, not a {plate.rows}x{plate.cols} dot grid",
                     n_candidates=len(circles))
     t3 = time.perf_counter()
+    prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
     order = order_grid(circles.centres, plate, sizes=2 * circles.axes[:, 0], image_shape=small.shape,
-                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
+                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
     tm["ordering"] = time.perf_counter() - t3
     if not order.ok:
         return fail(order.reason, n_candidates=len(circles))
-    idx = order.index
-    c0 = coarse_to_full(circles.centres[idx], factor)
+    rc = plate.row_col()
+    found = order.index >= 0
     gap_ratio = plate.pitch_range_mm[0] / plate.dot_diameter_mm - 1.0
+    if prior is not None:  # a view that may be partial leaves out the dots the border cuts
+        found[found] = ~cut_by_border(coarse_to_full(circles.centres[order.index[found]], factor),
+                                      circles.axes[order.index[found], 0] * factor, gap_ratio, image.shape)
+    if found.sum() < MIN_FRACTION * n:
+        return fail(f"partial view: {int(found.sum())} of {n} dots wholly in the image, fewer than "
+                    f"{MIN_FRACTION:.0%} of the plate", n_candidates=len(circles))
+    idx = order.index[found]
+    c0 = coarse_to_full(circles.centres[idx], factor)
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
                            gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
-    rc = plate.row_col()
     bad = ~fits.ok | (fits.support < p.min_support)
     moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(0.5 * fits.axes[:, 1], 2.0 * factor)
     bad |= moved
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
-        return fail(f"rim fit failed for {int(bad.sum())} dot(s), first at row {rc[k, 0]} col {rc[k, 1]} "
+        r, c = rc[found][k]
+        return fail(f"rim fit failed for {int(bad.sum())} dot(s), first at row {r} col {c} "
                     f"(support {fits.support[k]:.2f})", n_candidates=len(circles))
     t5 = time.perf_counter()
-    xy = plate.dot_centres_mm()[:, :2]
+    xy = plate.dot_centres_mm()[found, :2]
     if correct_perspective:
         centres, hom = correct_bias(fits.centres, xy, plate.dot_diameter_mm / 2, p.bias_iterations)
     else:
         centres, hom = fits.centres.copy(), fit_homography(xy, fits.centres)
     tm["perspective"] = time.perf_counter() - t5
+
+    def per_dot(values: np.ndarray) -> np.ndarray:  # found dots' values → (rows*cols, ...), NaN for the rest
+        out = np.full((n, *values.shape[1:]), np.nan)
+        out[found] = values
+        return out
+
     return GridDetection(
-        ok=True, reason="", detector="rrht", centres=centres, residual_rms_px=fits.residual_rms_px,
-        support_ratio=fits.support, elapsed_s=time.perf_counter() - t_start,
-        ellipse_centres=fits.centres, axes_px=fits.axes, edge_sigma_px=fits.edge_sigma_px,
+        ok=True, reason="", detector="rrht", centres=per_dot(centres), residual_rms_px=per_dot(fits.residual_rms_px),
+        support_ratio=per_dot(fits.support), elapsed_s=time.perf_counter() - t_start,
+        ellipse_centres=per_dot(fits.centres), axes_px=per_dot(fits.axes), edge_sigma_px=per_dot(fits.edge_sigma_px),
         rotation_deg=order.rotation_deg,
         orientation_ambiguous=order.ambiguous, homography=hom, n_candidates=len(circles), timings_s=tm,
     )

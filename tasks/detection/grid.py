@@ -10,7 +10,9 @@ Frames: image px (u right, v down). Plate rows/cols as in :class:`tasks.plate.Do
    (steps shrinking across the plate) is followed. Points off the lattice (clutter) are
    never reached.
 3. *Window*: the rows × cols (or cols × rows) window of the lattice must be complete and unique;
-   otherwise the view is rejected with a reason (out of view, missing dots, extra dots).
+   otherwise the view is rejected with a reason (out of view, missing dots, extra dots) — unless
+   the dots' expected positions are given, when a plate partly out of the image is labelled by
+   them (:mod:`tasks.detection.partial_view`) and step 4 is not needed.
 4. *Orientation*: of the 8 symmetries of a rectangle, the physical handedness (the camera looks
    at the printed face, plate +Z towards the camera) leaves 4 for a square grid and 2 otherwise
    (a grid of unequal row and column counts, or of unequal row and column pitches: the longer
@@ -23,28 +25,14 @@ Frames: image px (u right, v down). Plate rows/cols as in :class:`tasks.plate.Do
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tasks.detection.grid_order import GridOrder, fail_order, lattice_steps, rotation_deg
+from tasks.detection.partial_view import order_by_prior
 from tasks.plate import DotPlate
 
-
-@dataclass
-class GridOrder:
-    """Result of ordering: ``index[k]`` is the input point of plate dot k (row-major), or -1."""
-
-    ok: bool
-    reason: str
-    index: np.ndarray  # (rows*cols,) int
-    rotation_deg: float = float("nan")  # angle of the plate +X axis in the image (ccw on screen)
-    ambiguous: bool = False  # several orientations possible and no prior chose between them
-    lattice_shape: tuple[int, int] = (0, 0)  # extent of the connected lattice found
-
-
-def _fail(plate: DotPlate, reason: str, shape=(0, 0)) -> GridOrder:
-    return GridOrder(False, reason, np.full(plate.rows * plate.cols, -1), lattice_shape=shape)
+__all__ = ["GridOrder", "build_lattice", "order_grid", "reduce_lattice"]
 
 
 def _axis_directions(vec: np.ndarray) -> tuple[float, float] | None:
@@ -214,24 +202,28 @@ def _dihedral(rows: int, cols: int, h: int, w: int):
 
 def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None = None,
                image_shape: tuple[int, int] | None = None, expected_rotation_deg: float | None = None,
-               mirrored: bool = False, lattice: tuple[np.ndarray, np.ndarray] | None = None) -> GridOrder:
+               mirrored: bool = False, lattice: tuple[np.ndarray, np.ndarray] | None = None,
+               expected_centres: np.ndarray | None = None) -> GridOrder:
     """Assign detected points (N, 2) px to the plate's dots.
 
     sizes: (N,) dot diameters in px (major axis), used to bound neighbour spacing and reject
     clutter of another size; image_shape (H, W) lets the reason say when the plate leaves the
     image; mirrored flips the expected handedness (a plate seen from its back); ``lattice``
     supplies precomputed integer coordinates (mn (N, 2), assigned (N,)) and skips steps 1–2.
+    expected_centres: (rows*cols, 2) px, where the dots should be (same frame as ``points``); with
+    ``image_shape``, a lattice without a complete window is then ordered as a partial view
+    (:func:`tasks.detection.partial_view.order_by_prior`: ``index`` is −1 for the dots not found).
     """
     rows, cols = plate.rows, plate.cols
     need = rows * cols
     points = np.asarray(points, dtype=float)
     if len(points) == 0:
-        return _fail(plate, "no dot candidates found")
+        return fail_order(plate, "no dot candidates found")
     mn, assigned = lattice if lattice is not None else build_lattice(
         points, sizes, tuple(p / plate.dot_diameter_mm for p in plate.pitch_range_mm), min_points=need)
     sel = np.flatnonzero(assigned)
     if len(sel) < 4:
-        return _fail(plate, f"no dot lattice found among {len(points)} candidates (expected {rows}x{cols})")
+        return fail_order(plate, f"no dot lattice found among {len(points)} candidates (expected {rows}x{cols})")
     g = reduce_lattice(mn[sel])
     g = g - g.min(axis=0)
     hh, ww = (g.max(axis=0) + 1).tolist()
@@ -249,6 +241,8 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
         for a0, b0 in zip(*np.nonzero(s == need), strict=True):
             windows.append((h, w, int(a0), int(b0)))
     shape_txt = f"{hh}x{ww}"
+    if not windows and expected_centres is not None and image_shape is not None:
+        return order_by_prior(points, sel, g, plate, np.asarray(expected_centres, dtype=float), image_shape)
     if not windows:
         found = len(sel)
         near_border = False
@@ -256,21 +250,21 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
             hi, wi = image_shape
             p = points[sel]
             nn = cKDTree(p).query(p, k=2)[0][:, 1]
-            margin = max(0.75 * float(np.median(nn)), 5.0)
+            margin = max(float(np.median(nn)), 5.0)  # the next row or column would be at the border or beyond
             near_border = bool(((p[:, 0] < margin) | (p[:, 0] > wi - 1 - margin)
                                 | (p[:, 1] < margin) | (p[:, 1] > hi - 1 - margin)).any())
         if near_border:
-            return _fail(plate, f"partial view: plate partly out of the image ({shape_txt} lattice of "
+            return fail_order(plate, f"partial view: plate partly out of the image ({shape_txt} lattice of "
                                 f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww))
-        return _fail(plate, f"missing dots: {shape_txt} lattice of {found} dots, at most "
+        return fail_order(plate, f"missing dots: {shape_txt} lattice of {found} dots, at most "
                             f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww))
     if len(windows) > 1:
-        return _fail(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
+        return fail_order(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
                             f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww))
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
     if strays >= max(2, (min(rows, cols) + 1) // 2):
-        return _fail(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
+        return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
                             f"window ({shape_txt} lattice)", (hh, ww))
     win = occ[a0 : a0 + h, b0 : b0 + w]
     ab = np.stack(np.meshgrid(np.arange(h), np.arange(w), indexing="ij"), axis=-1).reshape(-1, 2)
@@ -279,18 +273,16 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     cands = []
     for m, off in _dihedral(rows, cols, h, w):
         rc = ab @ m.T + off  # (need, 2) row, col
-        design = np.column_stack([rc[:, 1], rc[:, 0], np.ones(need)])
-        coef, *_ = np.linalg.lstsq(design, pts, rcond=None)
-        dcol, drow = coef[0], coef[1]
+        dcol, drow = lattice_steps(pts, rc)
         cross = dcol[0] * drow[1] - dcol[1] * drow[0]
         if (cross < 0) == mirrored:
             continue
         if not plate.is_square_lattice and (np.hypot(*dcol) > np.hypot(*drow)) != (plate.pitch_mm > plate.pitch_y_mm):
             continue  # a quarter turn would swap the plate's long and short spacings
-        ang = float(np.degrees(np.arctan2(-dcol[1], dcol[0])))
+        ang = rotation_deg(dcol)
         cands.append((ang, rc))
     if not cands:
-        return _fail(plate, "internal: no orientation with the expected handedness")
+        return fail_order(plate, "internal: no orientation with the expected handedness")
     ref = 0.0 if expected_rotation_deg is None else float(expected_rotation_deg)
     diffs = np.array([abs((a - ref + 180.0) % 360.0 - 180.0) for a, _ in cands])
     order = np.argsort(diffs)

@@ -37,6 +37,11 @@ def coarse_to_full(uv: np.ndarray, factor: int) -> np.ndarray:
     return (np.asarray(uv, dtype=float) + 0.5) * factor - 0.5
 
 
+def full_to_coarse(uv: np.ndarray, factor: int) -> np.ndarray:
+    """Map full-size pixel coordinates to coarse-image ones (px); the inverse of :func:`coarse_to_full`."""
+    return (np.asarray(uv, dtype=float) + 0.5) / factor - 0.5
+
+
 def gamma_lut(gamma: float, lo: float, hi: float, toe: float = 0.05) -> np.ndarray:
     """256-entry LUT: stretch [lo, hi] to x in [0, 1], apply a gamma curve, back to 0..255.
 

@@ -11,8 +11,10 @@ import numpy as np
 class GridDetection:
     """Dot centres of one plate image, ordered like ``DotPlate.dot_centres_mm`` (row-major).
 
-    ok: True when every dot of the rows × cols grid was found and ordered; otherwise ``reason``
-    says why not and the per-dot arrays are NaN.
+    ok: True when every dot of the rows × cols grid was found and ordered, or (given where the
+    dots should be) every dot wholly inside the image and at least half the plate's; otherwise
+    ``reason`` says why not and the per-dot arrays are NaN. The per-dot arrays of a dot not
+    measured (outside the image, or its rim cut by the border) are NaN: :attr:`found`.
     centres: (rows*cols, 2) px, image frame (u right, v down, origin at the centre of the top-left
     pixel). For "rrht" these are projected circle centres (perspective bias removed); the
     baselines return their raw centres.
@@ -43,6 +45,11 @@ class GridDetection:
     homography: np.ndarray | None = None
     n_candidates: int = 0
     timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def found(self) -> np.ndarray:
+        """(rows*cols,) bool: the dots measured (finite centres)."""
+        return np.all(np.isfinite(self.centres), axis=1)
 
     @classmethod
     def failure(cls, n_dots: int, detector: str, reason: str, **kw) -> GridDetection:

@@ -467,6 +467,13 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | Non
     return x, y, valid, s, ang, gain
 
 
+def rim_reach_px(major_semi_axes_px: np.ndarray, gap_ratio: float) -> np.ndarray:
+    """How far from a dot's centre (px) the rim rays look: beyond the rim by up to 60 % of the
+    radius, and never past 80 % of the gap to the neighbouring dot (``gap_ratio``: (pitch −
+    diameter) / diameter)."""
+    return (1.0 + min(0.8 * gap_ratio, 0.6)) * np.asarray(major_semi_axes_px, dtype=float)
+
+
 def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
                     dark_dots: bool, gap_ratio: float, coarse_factor: int,
                     params: SubpixelParams | None = None, seed: int = 0,
@@ -483,7 +490,7 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     clock = time.perf_counter
     t_begin = clock()
     sign = 1.0 if dark_dots else -1.0
-    out_lim = (1.0 + min(0.8 * gap_ratio, 0.6)) * axes[:, 0]
+    out_lim = rim_reach_px(axes[:, 0], gap_ratio)
     reach = float(out_lim.max()) + 4.0 * coarse_factor
     crop1 = crop_rois(image, centres, reach)
     t0 = clock()

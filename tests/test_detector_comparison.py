@@ -152,18 +152,25 @@ def test_a_failing_detector_lowers_its_rate(tiny_campaign, monkeypatch):
 
     monkeypatch.setitem(detection_api.DETECTORS, "flaky", flaky)
     runs = detector_runs(tiny_campaign, true_cameras(tiny_campaign), ("rrht", "flaky"))
-    failed = runs[(runs.detector == "flaky") & ~runs.ok]
-    assert list(failed.image_id) == [target] and failed.reason.iloc[0] == "deliberate failure"
-    assert failed[["centre_rms_px", "reproj_rms_px", "trans_err_um"]].isna().all(axis=None)
-    assert np.isfinite(failed.runtime_ms.iloc[0])
+    # plate a leaves camera 1's field in some machine views: a whole-grid comparison misses those
+    # for every detector, so the flaky one misses exactly rrht's misses and the target
+    rrht_misses = runs[(runs.detector == "rrht") & ~runs.ok]
+    assert rrht_misses.reason.str.startswith("partial view").all() and (rrht_misses.camera == "camera1").all()
+    missed_by_rrht = set(rrht_misses.image_id)
+    assert target not in missed_by_rrht
+    failed = runs[(runs.detector == "flaky") & ~runs.ok].set_index("image_id")
+    assert set(failed.index) == missed_by_rrht | {target} and failed.loc[target, "reason"] == "deliberate failure"
+    assert failed.loc[[target], ["centre_rms_px", "reproj_rms_px", "trans_err_um"]].isna().all(axis=None)
+    assert np.isfinite(failed.loc[target, "runtime_ms"])
     t = summarise_runs(runs).set_index(["detector", "camera"])
     for cam in ("camera2", ALL_CAMERAS):
         assert t.loc[("flaky", cam), "n_found"] == t.loc[("rrht", cam), "n_found"] - 1
-        assert t.loc[("flaky", cam), "detection_rate_pct"] < t.loc[("rrht", cam), "detection_rate_pct"] == 100.0
+        assert t.loc[("flaky", cam), "detection_rate_pct"] < t.loc[("rrht", cam), "detection_rate_pct"]
         assert t.loc[("flaky", cam), "n_poses"] == t.loc[("rrht", cam), "n_poses"] - 1
+    assert t.loc[("rrht", "camera2"), "detection_rate_pct"] == 100.0  # plate b never leaves camera 2's field
     n2 = t.loc[("flaky", "camera2"), "n_images"]
     assert t.loc[("flaky", "camera2"), "detection_rate_pct"] == pytest.approx(100.0 * (n2 - 1) / n2)
-    assert t.loc[("flaky", "camera1"), "detection_rate_pct"] == 100.0
+    assert t.loc[("flaky", "camera1"), "detection_rate_pct"] == t.loc[("rrht", "camera1"), "detection_rate_pct"]
     assert t.loc[("flaky", "camera1"), "centre_rms_px"] == pytest.approx(t.loc[("rrht", "camera1"), "centre_rms_px"])
 
 

@@ -14,9 +14,18 @@ import numpy as np
 import pandas as pd
 
 from tasks.camera_model import CameraModel
+from tasks.detection.perspective import project
 from tasks.machine import load_machine
 from tasks.poses import poses_from_table
-from tasks.vision import campaign_plates, detect_images, plate_names, plate_poses, plates_by_camera
+from tasks.vision import (
+    PRIOR_COLUMNS,
+    campaign_plates,
+    detect_images,
+    plate_names,
+    plate_poses,
+    plates_by_camera,
+    with_detection_inputs,
+)
 
 
 def _campaign(folder) -> tuple[dict, pd.DataFrame]:

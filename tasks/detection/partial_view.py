@@ -99,9 +99,8 @@ def order_by_prior(points: np.ndarray, sel: np.ndarray, lattice: np.ndarray, pla
     missing = np.flatnonzero(required & (index < 0))
     if len(missing):
         r, c = plate.row_col()[missing[0]]
-        u, v = expected_centres[missing[0]]
         return fail_order(plate, f"missing dots: {len(missing)} dot(s) predicted inside the image not found, "
-                                 f"first row {r} col {c} near ({u:.0f}, {v:.0f}) px", shape)
+                                 f"first row {r} col {c}", shape)
     found = int((index >= 0).sum())
     if found < min_fraction * n:
         return fail_order(plate, f"partial view: {found} of {n} dots in the image, fewer than "

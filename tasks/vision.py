@@ -33,6 +33,7 @@ import pandas as pd
 from tasks.camera_calibration import calibrate_camera, nominal_camera, trial_views
 from tasks.camera_model import CameraModel
 from tasks.detection import detect_grid
+from tasks.detection.grid_order import rotation_deg
 from tasks.detection.perspective import project
 from tasks.kinematics import forward
 from tasks.machine import CALIBRATION_STAGE, Machine, machine_from_dict, plate_seen
@@ -120,25 +121,30 @@ def expected_homographies(metadata: dict, images: pd.DataFrame) -> np.ndarray:
     return out
 
 
-def expected_rotations(metadata: dict, images: pd.DataFrame) -> pd.Series:
-    """Expected in-plane angle (deg, counter-clockwise on screen from +u) of each plate's +X axis
-    at the plate's centre, from :func:`expected_homographies`; NaN for camera_calibration views.
-    images: rows of the images table (camera, stage, X_mm ... C_deg).
-    """
-    H = expected_homographies(metadata, images)
+def homography_rotations(H: np.ndarray) -> np.ndarray:
+    """(N,) in-plane angle (deg, counter-clockwise on screen from +u) of the plate's +X axis at the
+    plate's centre under the plate → image homographies ``H`` (N, 3, 3); NaN where H is."""
     origin = H[:, :2, 2] / H[:, 2:, 2]
     along_x = (H[:, :2, 0] + H[:, :2, 2]) / (H[:, 2:, 0] + H[:, 2:, 2])  # the plate point (1 mm, 0)
-    d = along_x - origin
-    return pd.Series(np.degrees(np.arctan2(-d[:, 1], d[:, 0])), index=images.index, dtype=float)
+    return rotation_deg(along_x - origin)
+
+
+def expected_rotations(metadata: dict, images: pd.DataFrame) -> pd.Series:
+    """Expected in-plane angle (deg) of each plate's +X axis (:func:`homography_rotations` of
+    :func:`expected_homographies`); NaN for camera_calibration views.
+    images: rows of the images table (camera, stage, X_mm ... C_deg).
+    """
+    return pd.Series(homography_rotations(expected_homographies(metadata, images)), index=images.index, dtype=float)
 
 
 def with_detection_inputs(metadata: dict, images: pd.DataFrame) -> pd.DataFrame:
     """``images`` with what detection needs beside each image: ``rotation_deg``
     (:func:`expected_rotations`), ``plate`` (:func:`plate_names`) and the predicted homography in
     :data:`PRIOR_COLUMNS` (:func:`expected_homographies`, row-major, scaled to h22 = 1)."""
-    H = expected_homographies(metadata, images).reshape(len(images), 9)
-    return images.assign(rotation_deg=expected_rotations(metadata, images), plate=plate_names(metadata, images),
-                         **{c: H[:, k] for k, c in enumerate(PRIOR_COLUMNS)})
+    H = expected_homographies(metadata, images)
+    flat = H.reshape(len(images), 9)
+    return images.assign(rotation_deg=homography_rotations(H), plate=plate_names(metadata, images),
+                         **{c: flat[:, k] for k, c in enumerate(PRIOR_COLUMNS)})
 
 
 def detection_chunks(images: pd.DataFrame, chunk_size: int) -> list[pd.DataFrame]:

@@ -23,7 +23,7 @@ import numpy as np
 from tasks.detection.chaincode import filter_edges
 from tasks.detection.edges import canny_edges
 from tasks.detection.grid import order_grid
-from tasks.detection.partial_view import MIN_FRACTION
+from tasks.detection.partial_view import too_few_dots
 from tasks.detection.perspective import correct_bias, fit_homography
 from tasks.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
 from tasks.detection.result import GridDetection
@@ -129,9 +129,9 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     if prior is not None:  # a view that may be partial leaves out the dots the border cuts
         found[found] = ~cut_by_border(coarse_to_full(circles.centres[order.index[found]], factor),
                                       circles.axes[order.index[found], 0] * factor, gap_ratio, image.shape)
-    if found.sum() < MIN_FRACTION * n:
-        return fail(f"partial view: {int(found.sum())} of {n} dots wholly in the image, fewer than "
-                    f"{MIN_FRACTION:.0%} of the plate", n_candidates=len(circles))
+    too_few = too_few_dots(int(found.sum()), n)
+    if too_few:
+        return fail(too_few, n_candidates=len(circles))
     idx = order.index[found]
     c0 = coarse_to_full(circles.centres[idx], factor)
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,

@@ -255,17 +255,17 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
                                 | (p[:, 1] < margin) | (p[:, 1] > hi - 1 - margin)).any())
         if near_border:
             return fail_order(plate, f"partial view: plate partly out of the image ({shape_txt} lattice of "
-                                f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww))
+                                     f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww))
         return fail_order(plate, f"missing dots: {shape_txt} lattice of {found} dots, at most "
-                            f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww))
+                                 f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww))
     if len(windows) > 1:
         return fail_order(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
-                            f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww))
+                                 f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww))
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
     if strays >= max(2, (min(rows, cols) + 1) // 2):
         return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
-                            f"window ({shape_txt} lattice)", (hh, ww))
+                                 f"window ({shape_txt} lattice)", (hh, ww))
     win = occ[a0 : a0 + h, b0 : b0 + w]
     ab = np.stack(np.meshgrid(np.arange(h), np.arange(w), indexing="ij"), axis=-1).reshape(-1, 2)
     pidx = win.reshape(-1)
@@ -279,7 +279,7 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
             continue
         if not plate.is_square_lattice and (np.hypot(*dcol) > np.hypot(*drow)) != (plate.pitch_mm > plate.pitch_y_mm):
             continue  # a quarter turn would swap the plate's long and short spacings
-        ang = rotation_deg(dcol)
+        ang = float(rotation_deg(dcol))
         cands.append((ang, rc))
     if not cands:
         return fail_order(plate, "internal: no orientation with the expected handedness")

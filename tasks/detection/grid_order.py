@@ -37,9 +37,11 @@ def lattice_steps(points_px: np.ndarray, row_col: np.ndarray) -> tuple[np.ndarra
     return coef[0], coef[1]
 
 
-def rotation_deg(column_step_px: np.ndarray) -> float:
-    """In-plane angle (deg) of the plate's +X (column) axis, counter-clockwise on screen from +u."""
-    return float(np.degrees(np.arctan2(-column_step_px[1], column_step_px[0])))
+def rotation_deg(column_step_px: np.ndarray):
+    """In-plane angle (deg) of the plate's +X (column) axis, counter-clockwise on screen from +u, from
+    its step in the image (..., 2) px: a float for one step, an array for many."""
+    step = np.asarray(column_step_px, dtype=float)
+    return np.degrees(np.arctan2(-step[..., 1], step[..., 0]))
 
 
 def rotation_of(points: np.ndarray, index: np.ndarray, plate: DotPlate) -> float:
@@ -47,4 +49,4 @@ def rotation_of(points: np.ndarray, index: np.ndarray, plate: DotPlate) -> float
     dot not found."""
     found = index >= 0
     dcol, _ = lattice_steps(points[index[found]], plate.row_col()[found])
-    return rotation_deg(dcol)
+    return float(rotation_deg(dcol))

@@ -40,6 +40,13 @@ _SIGNED_PERMUTATIONS = np.array([[[a, 0], [0, b]] for a in (1, -1) for b in (1, 
                                 + [[[0, a], [b, 0]] for a in (1, -1) for b in (1, -1)])
 
 
+def too_few_dots(n_found: int, n_dots: int, min_fraction: float = MIN_FRACTION) -> str | None:
+    """The reason a partial view of ``n_found`` of a plate's ``n_dots`` dots is refused, or None."""
+    if n_found >= min_fraction * n_dots:
+        return None
+    return f"partial view: {n_found} of {n_dots} dots wholly in the image, fewer than {min_fraction:.0%} of the plate"
+
+
 def predicted_pitch_px(expected_centres: np.ndarray) -> float:
     """Median distance (px) from each predicted dot to its nearest predicted neighbour."""
     e = expected_centres[np.all(np.isfinite(expected_centres), axis=1)]
@@ -101,8 +108,7 @@ def order_by_prior(points: np.ndarray, sel: np.ndarray, lattice: np.ndarray, pla
         r, c = plate.row_col()[missing[0]]
         return fail_order(plate, f"missing dots: {len(missing)} dot(s) predicted inside the image not found, "
                                  f"first row {r} col {c}", shape)
-    found = int((index >= 0).sum())
-    if found < min_fraction * n:
-        return fail_order(plate, f"partial view: {found} of {n} dots in the image, fewer than "
-                                 f"{min_fraction:.0%} of the plate", shape)
+    reason = too_few_dots(int((index >= 0).sum()), n, min_fraction)
+    if reason:
+        return fail_order(plate, reason, shape)
     return GridOrder(True, "", index, rotation_of(points, index, plate), False, shape)

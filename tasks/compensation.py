@@ -1,19 +1,21 @@
 """Compensation by inverse kinematics of the identified model (§5.2).
 
 The desired tip pose of a command is where the *nominal* machine would put the tool. The
-compensated command is the one at which the *identified* machine puts it there. Five axes fix five
-degrees of freedom: the tip position and the tool direction; the rotation about the tool axis is
-the sixth, and what compensation does with it is the orientation objective:
+compensated command is the one at which the *identified* machine puts it there. X/Y/Z place the
+tip; A and C turn the tool about two directions only, A's axis and C's axis as A tilts it. The
+rotation about the third direction, perpendicular to both, is one no command can make: in the tip
+frame of the prototype it is cos A·y + sin A·z, a tilt of the tool near A = 0. What compensation
+does with the orientation is the orientation objective:
 
-* ``full`` (the default): the tip exactly (X/Y/Z); A and C minimise the whole orientation error,
-  the rotation about the tool axis included, as the seed's orientation error counts it. Near the
-  singular pose (tool along C at A ≈ 0) that also stops a tilt of the tool from being "corrected"
-  by a large turn of C that spins the tool about its axis. With a perfect model this leaves the
-  tool direction off by tens of arcsec on the prototype's validation poses (docs/calibrate.md).
+* ``full`` (the default): the tip exactly (X/Y/Z); A and C minimise the whole rotation angle, as the
+  seed's orientation error counts it. With a perfect model what is left is the error's component
+  along that third direction: 42–43″ mean on the prototype's validation poses, mostly a tilt of the
+  tool (docs/calibrate.md, "The targets").
 * ``tool-axis``: the tip and the tool direction exactly; the rotation about the tool axis is left
-  free, which a round dispensing needle does not see. Near A ≈ 0 this may turn C by tens of degrees
-  (the rotation about the tool axis then grows by as much). A pose whose solution does not converge
-  or leaves an axis' stroke keeps its ``full`` compensation, and the table says so.
+  free, which a round dispensing needle does not see. Correcting a tilt ε along the third direction
+  takes a turn of C of about ε / sin A, which spins the tool about its axis by about ε·cos A / sin A:
+  near A ≈ 0 tens of degrees. A pose whose solution does not converge or leaves an axis' stroke
+  keeps its ``full`` compensation, and the table says so.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ ORIENTATION_OBJECTIVES = {
     "full": "the whole tip rotation, the rotation about the tool axis included (the seed's metric)",
     "tool-axis": "the tool direction exactly, the rotation about the tool axis left free",
 }
-SPIN_WEIGHT = 1.0  # full: rotation about the tool axis weighs like the tool direction
+SPIN_WEIGHT = 1.0  # full: rotation about the tool axis weighs like a tilt: the whole angle is minimised
 ORIENTATION_WEIGHT_MM = 1.0  # mm per rad: orientation settles among A and C, X/Y/Z place the tip
 CONVERGED_MM = 1e-7  # tool-axis: largest |target − reached| (mm, and rad × ORIENTATION_WEIGHT_MM) accepted
 
@@ -73,7 +75,7 @@ def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray, orient
     desired = desired_tip_poses(machine, commands)
     position, direction = desired[:, :3, 3], desired[:, :3, 2]
     full = inverse(machine, position, direction, model, initial=commands, spin_weight=SPIN_WEIGHT,
-                   tool_x_axis=desired[:, :3, 0], direction_weight=ORIENTATION_WEIGHT_MM)
+                   tool_rotation=desired[:, :3, :3], direction_weight=ORIENTATION_WEIGHT_MM)
     if orientation == "full":
         return Compensation(full, ["full"] * len(full))
     tool, residual = inverse(machine, position, direction, model, initial=full,

@@ -22,12 +22,16 @@ _STEP = np.array([1e-4, 1e-4, 1e-4, 1e-5, 1e-5])  # finite-difference steps (mm,
 
 def _tip_state(machine, commands, errors, context, spin_weight: float = 0.0,
                direction_weight: float = DIRECTION_WEIGHT_MM):
-    """(N, 6) or (N, 9): tip position (mm), tool direction × direction_weight (mm per unit) and,
-    with a spin weight, the tip frame's x axis × spin_weight × direction_weight; workpiece frame."""
+    """(N, 6) or (N, 12): tip position (mm), tool direction × direction_weight (mm per unit) and,
+    with a spin weight, the tip frame's x and y axes × spin_weight × direction_weight; workpiece frame.
+
+    A small rotation ω of the tip moves its z, x and y axes by |ω×z|² = ωx² + ωy², |ω×x|² = ωy² + ωz²
+    and |ω×y|² = ωx² + ωz² (tip frame): with x and y both in, spin weight 1 weighs every direction of
+    rotation alike (2|ω|²), so the least squares minimises the whole rotation angle."""
     g = forward(machine, commands, errors, context).tool_in_workpiece()
     parts = [g[:, :3, 3], direction_weight * g[:, :3, 2]]
     if spin_weight:
-        parts.append(spin_weight * direction_weight * g[:, :3, 0])
+        parts += [spin_weight * direction_weight * g[:, :3, 0], spin_weight * direction_weight * g[:, :3, 1]]
     return np.concatenate(parts, axis=1)
 
 
@@ -61,7 +65,7 @@ def inverse(
     tol_mm: float = 1e-9,
     max_iter: int = 30,
     spin_weight: float = 0.0,
-    tool_x_axis=None,
+    tool_rotation=None,
     direction_weight: float = DIRECTION_WEIGHT_MM,
     return_residual: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
@@ -73,11 +77,13 @@ def inverse(
     grid search over the rotary axes, on the branch nearest ``prefer`` (N, 5) or (5,), default
     home). Raises ``ValueError`` for poses that do not converge.
 
-    spin_weight: w > 0 adds the rotation about the tool axis to the least squares, with weight w
-    relative to the tool direction (``tool_x_axis`` (N, 3): the desired tip x axis). Five axes
-    cannot fix it, but near the singular pose of a five-axis head (tool along C, A ≈ 0) a small
-    tilt of the tool can only be corrected by a large turn of C that spins the tool about its axis;
-    the weight stops that trade where it costs more spin than it gains tilt. No convergence error
+    spin_weight: w > 0 adds the rotation about the tool axis to the least squares (``tool_rotation``
+    (N, 3, 3): the desired tip rotation in the workpiece frame); w = 1 weighs it like a tilt of the
+    tool, so the least squares minimises the whole rotation angle. Two rotary axes turn the tool
+    about two directions only, so the whole rotation cannot in general be fixed; near the singular
+    pose of a five-axis head (tool along C, A ≈ 0) a small tilt of the tool can only be corrected by
+    a large turn of C that spins the tool about its axis, and the weight stops that trade where it
+    costs more spin than it gains tilt. No convergence error
     is raised then (the problem is overdetermined): the caller reads what is left from the forward
     kinematics. direction_weight (mm per unit of direction, i.e. per rad) sets how orientation
     trades against position in that least squares; X/Y/Z can always place the tip, so a small
@@ -93,7 +99,9 @@ def inverse(
     target_d = target_d / np.linalg.norm(target_d, axis=1, keepdims=True)
     target = np.concatenate([target_p, direction_weight * target_d], axis=1)
     if spin_weight:
-        target = np.concatenate([target, spin_weight * direction_weight * np.atleast_2d(tool_x_axis)], axis=1)
+        R = np.asarray(tool_rotation, dtype=float).reshape(-1, 3, 3)
+        target = np.concatenate([target, spin_weight * direction_weight * R[:, :, 0],
+                                 spin_weight * direction_weight * R[:, :, 1]], axis=1)
     n = target.shape[0]
     if initial is None:
         prefer = np.zeros((n, 5)) if prefer is None else np.broadcast_to(np.asarray(prefer, float), (n, 5))
@@ -103,14 +111,14 @@ def inverse(
     cmd = np.atleast_2d(cmd).copy()
     for _ in range(max_iter):
         state = _tip_state(machine, cmd, errors, context, spin_weight, direction_weight)
-        r = target - state  # (N, 6) or (N, 9)
+        r = target - state  # (N, 6) or (N, 12)
         if np.max(np.abs(r)) < tol_mm:
             break
         # Jacobian by forward differences, all 5 columns in one batched FK of 5N poses
         pert = cmd[:, None, :] + np.eye(5)[None] * _STEP  # (N, 5, 5)
         ctx5 = None if context is None else context.take(np.repeat(np.arange(n), 5))
         s5 = _tip_state(machine, pert.reshape(-1, 5), errors, ctx5, spin_weight, direction_weight).reshape(n, 5, -1)
-        J = np.swapaxes((s5 - state[:, None, :]) / _STEP[None, :, None], 1, 2)  # (N, 6 or 9, 5)
+        J = np.swapaxes((s5 - state[:, None, :]) / _STEP[None, :, None], 1, 2)  # (N, 6 or 12, 5)
         JtJ = np.swapaxes(J, 1, 2) @ J
         Jtr = np.einsum("nij,ni->nj", J, r)
         step = np.linalg.solve(JtJ + 1e-12 * np.eye(5), Jtr[..., None])[..., 0]

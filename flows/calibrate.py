@@ -57,10 +57,11 @@ from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
 from tasks.results_lake import partition_path, read_table, write_partition
 from tasks.verification import (
     capture_errors,
-    true_errors,
+    modelled_errors,
+    predicted_by,
     vbm_errors,
     verification_table,
-    with_model_uncertainty,
+    with_phase_columns,
 )
 from tasks.verification_capture import is_simulated
 from tasks.vision import campaign_plates, content_key, nominal_machine, with_detection_inputs
@@ -171,8 +172,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
         cap = capture_task.submit(folder, capture_folder, ids, compensated, verification_repeats)
         capture_folder = Path(cap.result())
         cached["capture"] = cap.state.name == "Cached"
-        parts[("before", "truth")] = (ids, true_errors(machine, truth, desired, commands))
-        parts[("after", "truth")] = (ids, true_errors(machine, truth, desired, compensated))
+        parts[("before", "truth")] = (ids, modelled_errors(machine, truth, desired, commands))
+        parts[("after", "truth")] = (ids, modelled_errors(machine, truth, desired, compensated))
     if has_capture(capture_folder):
         check_capture_commands(capture_folder, requested)
         after = _measure_capture(capture_folder, results_root, cameras, detector)
@@ -188,8 +189,12 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     propagated = prop_future.result()
     cached["propagate_uncertainty"] = prop_future.state.name == "Cached"
     # how far the model's own uncertainty lets the tip miss, per phase
-    parts = with_model_uncertainty(parts, ids, {"before": commands, "after": compensated},
-                                   lambda c: expected_tip_errors(machine, result.model, propagated, c))
+    phase_commands = {"before": commands, "after": compensated}
+    parts = with_phase_columns(parts, ids, phase_commands,
+                               lambda c: expected_tip_errors(machine, result.model, propagated, c), "model_uncertainty")
+    # what the identified model itself predicts, to set beside what was measured
+    parts = with_phase_columns(parts, ids, phase_commands, predicted_by(machine, result.model, desired),
+                               "model_predicted")
     verification = verification_table(parts)
     formulations = formulations_task.submit(machine, result.model,
                                             measurements.stage("pige").commands).result()

@@ -138,6 +138,14 @@ _STATUS = _s("status", "'ok', or why the row has no result (see the message)")
 _MESSAGE = _s("message", "what went wrong, naming the file; empty when ok")
 
 
+def _tip_norms(prefix: str, position: str, orientation: str, tool_direction: str) -> tuple:
+    """The three verification columns ``<prefix>_position_um``, ``_orientation_arcsec`` and
+    ``_tool_direction_arcsec`` with their meanings."""
+    return (_c(f"{prefix}_position_um", "float64", "um", WORKPIECE, position),
+            _c(f"{prefix}_orientation_arcsec", "float64", "arcsec", TIP_ROTATION, orientation),
+            _c(f"{prefix}_tool_direction_arcsec", "float64", "arcsec", WORKPIECE, tool_direction))
+
+
 def _pdge_columns() -> tuple[Column, ...]:
     cols = []
     for name, unit, sym in _PDGE_COMPONENTS:
@@ -312,7 +320,7 @@ _TABLES = (
            "simulator's raw PIGE (NaN unless simulated, or not a PIGE)"))),
     TableSchema("compensation", 2, "validation pose", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "image_id"), _compensation_columns()),
-    TableSchema("verification", 4, "validation pose × phase × source", "flows/calibrate.py (fivecal calibrate)",
+    TableSchema("verification", 5, "validation pose × phase × source", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "phase", "source", "image_id"), (
         _s("image_id", "validation image"),
         _i("pose", "0-based index of the pose within its (phase, source) rows"),
@@ -326,20 +334,20 @@ _TABLES = (
         *(_c(n, "float64", u, f, m) for n, u, f, m in _TIP),
         _i("repeats", "images averaged into the vbm row's measured pose (the after rows: the verification "
            "capture's repeats per pose; null for truth)"),
-        _c("noise_floor_position_um", "float64", "um", WORKPIECE,
-           "expected position error norm from measurement noise alone, for the repeats' mean (vbm rows; "
-           "NaN for truth)"),
-        _c("noise_floor_orientation_arcsec", "float64", "arcsec", TIP_ROTATION,
-           "expected orientation error norm from measurement noise alone (vbm rows; NaN for truth)"),
-        _c("noise_floor_tool_direction_arcsec", "float64", "arcsec", WORKPIECE,
-           "expected tool-direction error from measurement noise alone (vbm rows; NaN for truth)"),
-        _c("model_uncertainty_position_um", "float64", "um", WORKPIECE,
-           "expected tip position error norm at this phase's commands from the identified model's "
-           "uncertainty alone (NaN when not propagated)"),
-        _c("model_uncertainty_orientation_arcsec", "float64", "arcsec", TIP_ROTATION,
-           "the same for the orientation"),
-        _c("model_uncertainty_tool_direction_arcsec", "float64", "arcsec", WORKPIECE,
-           "the same for the tool direction"))),
+        *_tip_norms("noise_floor",
+                    "expected position error norm from measurement noise alone, for the repeats' mean (vbm "
+                    "rows; NaN for truth)",
+                    "expected orientation error norm from measurement noise alone (vbm rows; NaN for truth)",
+                    "expected tool-direction error from measurement noise alone (vbm rows; NaN for truth)"),
+        *_tip_norms("model_uncertainty",
+                    "expected tip position error norm at this phase's commands from the identified model's "
+                    "uncertainty alone (NaN when not propagated)",
+                    "the same for the orientation", "the same for the tool direction"),
+        *_tip_norms("model_predicted",
+                    "tip position error norm the identified model predicts at this phase's commands (after a "
+                    "full compensation ≈ 0)",
+                    "the same for the orientation (after a full compensation: the rotation A and C cannot turn)",
+                    "the same for the tool direction"))),
     TableSchema("formulations", 1, "kinematic formulation (Table 5)", "flows/calibrate.py (fivecal calibrate)",
                 (PARTITION, "formulation"), (
         _s("formulation", "local PoE (ours) | Denavit–Hartenberg | global PoE"),

@@ -113,30 +113,46 @@ def capture_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, com
     return kept, errors.assign(repeats=count[keep])
 
 
-def true_errors(machine: Machine, truth: ErrorModel, desired: np.ndarray, commands: np.ndarray) -> pd.DataFrame:
-    """Tip errors of the simulator's true machine at ``commands`` against ``desired``."""
-    return tip_errors_with_tool_direction(forward(machine, commands, truth).tool_in_workpiece(), desired)
+def modelled_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray) -> pd.DataFrame:
+    """Tip errors (µm, arcsec; rows of :func:`tip_errors_with_tool_direction`) that the machine
+    described by ``model`` makes at ``commands`` (N, 5) against ``desired`` (N, 4, 4), workpiece frame:
+    with the simulator's truth, the true errors; with the identified model, what it predicts."""
+    return tip_errors_with_tool_direction(forward(machine, commands, model).tool_in_workpiece(), desired)
 
 
 Parts = dict[tuple[str, str], tuple[list[str], pd.DataFrame]]
 """{(phase, source): (validation image_ids, their tip errors)}: the pieces of the verification table."""
 
+PHASE_QUANTITIES = ("position_um", "orientation_arcsec", "tool_direction_arcsec")
 
-def with_model_uncertainty(parts: Parts, image_ids: list[str], commands: dict[str, np.ndarray], expected) -> Parts:
-    """``parts`` of :func:`verification_table` with the columns model_uncertainty_position_um,
-    model_uncertainty_orientation_arcsec and model_uncertainty_tool_direction_arcsec:
-    ``expected(commands)`` -> (µm (N,), arcsec (N,), arcsec (N,)), e.g.
-    :func:`tasks.identification.uncertainty.expected_tip_errors`, at each phase's commands
-    ({phase: (N, 5)} in the order of ``image_ids``), kept for the image_ids of each part."""
-    per_phase = {phase: expected(c) for phase, c in commands.items()}
+
+def with_phase_columns(parts: Parts, image_ids: list[str], commands: dict[str, np.ndarray], compute,
+                       prefix: str) -> Parts:
+    """``parts`` of :func:`verification_table` with the columns ``<prefix>_position_um``,
+    ``<prefix>_orientation_arcsec`` and ``<prefix>_tool_direction_arcsec`` that depend on the phase's
+    commands only, the same for every source: ``compute(commands)`` -> (µm (N,), arcsec (N,),
+    arcsec (N,)) at each phase's commands ({phase: (N, 5)} in the order of ``image_ids``), kept for the
+    image_ids of each part. Used for the model uncertainty
+    (:func:`tasks.identification.uncertainty.expected_tip_errors`, prefix ``model_uncertainty``) and
+    for the identified model's own prediction (:func:`predicted_by`, prefix ``model_predicted``)."""
+    per_phase = {phase: compute(c) for phase, c in commands.items()}
     out = {}
     for (phase, source), (ids, df) in parts.items():
         keep = np.isin(image_ids, ids)
-        pos, ori, tool = per_phase[phase]
-        out[(phase, source)] = (ids, df.assign(model_uncertainty_position_um=pos[keep],
-                                               model_uncertainty_orientation_arcsec=ori[keep],
-                                               model_uncertainty_tool_direction_arcsec=tool[keep]))
+        values = per_phase[phase]
+        out[(phase, source)] = (ids, df.assign(**{f"{prefix}_{q}": v[keep]
+                                                  for q, v in zip(PHASE_QUANTITIES, values, strict=True)}))
     return out
+
+
+def predicted_by(machine: Machine, model: ErrorModel, desired: np.ndarray):
+    """``compute`` for :func:`with_phase_columns`: the tip error norms (µm, arcsec, arcsec) that
+    ``model`` predicts at a phase's commands against ``desired``. After a ``full`` compensation the
+    orientation it predicts is what A and C cannot turn (tasks.compensation)."""
+    def compute(commands: np.ndarray):
+        errors = modelled_errors(machine, model, desired, commands)
+        return tuple(errors[q].to_numpy() for q in PHASE_QUANTITIES)
+    return compute
 
 
 def verification_table(parts: Parts) -> pd.DataFrame:

@@ -179,6 +179,24 @@ def test_tool_direction_rows_follow_their_column_and_have_no_seed_figure():
     assert len(t) == len(before_after_table(HAND)) * 3 // 2  # a third quantity; none without its column
 
 
+def test_model_predicted_columns_give_the_mean_rows_beside_the_measurement():
+    """The identified model's own prediction per phase: its mean over the poses on the mean rows of
+    both sources, NaN elsewhere, and two headed columns in the Markdown only when it is given."""
+    from tasks.report.tables import format_before_after
+
+    v = HAND.assign(model_predicted_position_um=np.where(HAND["phase"] == "before", 2.0, 0.0),
+                    model_predicted_orientation_arcsec=np.where(HAND["phase"] == "before", 24.0, 4.5))
+    t = before_after_table(v)
+    for source in ("vbm", "truth"):
+        ori = _row(t, source, "orientation", "mean")
+        assert ori["model_predicted_before"] == pytest.approx(24.0)
+        assert ori["model_predicted_after"] == pytest.approx(4.5)
+    assert _row(t, "vbm", "position", "mean")["model_predicted_after"] == pytest.approx(0.0)
+    assert math.isnan(_row(t, "vbm", "orientation", "max")["model_predicted_after"])
+    assert "| Model predicts before | Model predicts after |" in format_before_after(t)
+    assert "Model predicts" not in format_before_after(before_after_table(HAND))
+
+
 def test_summary_says_worse_when_after_exceeds_before_and_the_objective_is_counted():
     """Under the tool-axis objective the whole orientation error grows: the summary says "worse"
     instead of a negative "better", and the before/after section counts the poses per objective."""

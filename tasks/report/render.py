@@ -269,7 +269,12 @@ def before_after_section(data: ReportData, ba: pd.DataFrame, sink: _FigureSink) 
                 ba[["noise_floor_before", "noise_floor_after"]].notna().any().any() else "")
              + ("; model uncertainty after = mean expected tip error after compensation from the identified "
                 "model's uncertainty alone (the PIGE table's u): how far compensation can be trusted to place the "
-                "tip" if ba["model_uncertainty_after"].notna().any() else "") + "."
+                "tip" if ba["model_uncertainty_after"].notna().any() else "")
+             + ("; model predicts = mean tip error the identified model itself predicts at the phase's commands: "
+                "before, how much of the measured error the model accounts for; after, what it says compensation "
+                "leaves (A and C turn the tool about two directions only, so after a full compensation the "
+                "orientation it predicts is the rotation about the third, which no command can make)"
+                if ba[["model_predicted_before", "model_predicted_after"]].notna().any().any() else "") + "."
              + "\n\n" + T.format_before_after(ba),
              T.seed_rate_note()]
     if objective := _objective_note(data.compensation):

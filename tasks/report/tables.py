@@ -38,7 +38,8 @@ ROTATION = ("ex_arcsec", "ey_arcsec", "ez_arcsec")
 DIRECTIONS = ("dx_um", "dy_um", "dz_um", "rx_arcsec", "ry_arcsec", "rz_arcsec")
 BEFORE_AFTER_COLUMNS = ("source", "quantity", "unit", "statistic", "n_before", "n_after", "before", "after",
                         "improvement_pct", "seed_before", "seed_after", "seed_improvement_pct",
-                        "noise_floor_before", "noise_floor_after", "model_uncertainty_after")
+                        "noise_floor_before", "noise_floor_after", "model_uncertainty_after",
+                        "model_predicted_before", "model_predicted_after")
 
 
 # --------------------------------------------------------------------------------------------
@@ -163,7 +164,9 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
     (mean over the poses of the expected error norm from measurement noise alone; on the VBM mean rows
     only, NaN when not given),
     model_uncertainty_after (mean expected error norm after compensation from the identified model's
-    uncertainty; on the mean rows, NaN when not given).
+    uncertainty; on the mean rows, NaN when not given), model_predicted_before/after (mean error norm
+    the identified model itself predicts at the phase's commands, column model_predicted_<quantity
+    column>; on the mean rows, NaN when not given).
     """
     rows = []
     present = set(verification["source"].astype(str)) if "source" in verification.columns else set()
@@ -176,6 +179,7 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
             floor = {p: _stats(column(f, f"noise_floor_{col}"))["mean"] if source == "vbm" else np.nan
                      for p, f in phases.items()}
             expected = _stats(column(phases["after"], f"model_uncertainty_{col}"))["mean"]
+            predicted = {p: _stats(column(f, f"model_predicted_{col}"))["mean"] for p, f in phases.items()}
             for stat in STATISTICS:
                 key = f"{quantity}_{stat}_{unit}"
                 mean_row = stat == "mean"
@@ -189,6 +193,8 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
                     "noise_floor_before": floor["before"] if mean_row else np.nan,
                     "noise_floor_after": floor["after"] if mean_row else np.nan,
                     "model_uncertainty_after": expected if mean_row else np.nan,
+                    "model_predicted_before": predicted["before"] if mean_row else np.nan,
+                    "model_predicted_after": predicted["after"] if mean_row else np.nan,
                 })
     return pd.DataFrame(rows, columns=list(BEFORE_AFTER_COLUMNS))
 
@@ -203,6 +209,9 @@ def format_before_after(table: pd.DataFrame) -> str:
     expected = bool(table["model_uncertainty_after"].notna().any())
     if expected:
         headers += ["Model uncertainty after"]
+    predicted = bool(table[["model_predicted_before", "model_predicted_after"]].notna().any().any())
+    if predicted:
+        headers += ["Model predicts before", "Model predicts after"]
     rows = []
     for r in table.itertuples(index=False):
         row = [SOURCE_LABEL.get(r.source, r.source), f"{r.quantity} ({UNIT_LABEL[r.unit]})", r.statistic,
@@ -213,6 +222,8 @@ def format_before_after(table: pd.DataFrame) -> str:
             row += [fmt_unit(r.noise_floor_before, r.unit), fmt_unit(r.noise_floor_after, r.unit)]
         if expected:
             row += [fmt_unit(r.model_uncertainty_after, r.unit)]
+        if predicted:
+            row += [fmt_unit(r.model_predicted_before, r.unit), fmt_unit(r.model_predicted_after, r.unit)]
         rows.append(row)
     return md_table(headers, rows, "lll" + "r" * (len(headers) - 3))
 

@@ -15,9 +15,11 @@ the identified parameters (:mod:`tasks.identification.uncertainty`):
 * the full covariance of the intrinsics θ = (f, cx, cy, k1, k2, p1, p2, k3) of the joint
   self-calibration (one focal length: the fit holds the aspect ratio). OpenCV reports only their
   standard deviations; the correlations (f with k1, cx with p1, …) matter when the poses
-  move with several at once. Σ_θ = σ² S⁻¹ with S = Σ_views J_θᵀ J_θ − J_θᵀ J_g (J_gᵀ J_g)⁻¹ J_gᵀ J_θ,
-  the Schur complement that eliminates each view's pose g, and σ² the residual variance with
-  2N − 8 − 6V degrees of freedom. Its diagonal reproduces OpenCV's ``stdDeviationsIntrinsics``.
+  move with several at once. With S = Σ_views J_θᵀ J_θ − J_θᵀ J_g (J_gᵀ J_g)⁻¹ J_gᵀ J_θ, the Schur
+  complement that eliminates each view's pose g: σ² S⁻¹ (σ² the residual variance with 2N − 8 − 6V
+  degrees of freedom; its diagonal reproduces OpenCV's ``stdDeviationsIntrinsics``) when every
+  dot centre errs independently, and by default the views-as-clusters sandwich, because the
+  detector's errors are shared within a view (:func:`intrinsics_covariance`).
 * the first-order change of each PnP pose with θ: the pose minimises the reprojection error,
   so dδ = −(J_gᵀ J_g)⁻¹ J_gᵀ J_θ dθ, δ the plate-frame twist of :mod:`tasks.poses`.
 
@@ -50,14 +52,24 @@ def intrinsics_jacobian(object_points_mm: np.ndarray, T_cam_plate: np.ndarray, c
     return np.column_stack([jac[:, 6] + jac[:, 7], jac[:, 8:15]])
 
 
-def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera: CameraModel) -> np.ndarray:
+def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera: CameraModel,
+                          robust: bool = True) -> np.ndarray:
     """(8, 8) covariance of θ (INTRINSIC_PARAMETERS) of a self-calibration from its ``views``.
 
     views: (object points (K, 3) mm, image points (K, 2) px; NaN rows skipped) of every image the
     calibration used. camera: the calibration's intrinsics. Each view's pose is re-estimated with
-    them (the calibration's own extrinsics, to the tolerance of its optimiser)."""
+    them (the calibration's own extrinsics, to the tolerance of its optimiser).
+
+    robust=False: σ² S⁻¹, which assumes every dot centre errs independently; its diagonal is
+    OpenCV's ``stdDeviationsIntrinsics``. The detector's centre errors are not independent within
+    a view: blur, the pixel phase of the rims and the lighting bend a whole view's centres
+    together. robust=True (the default) therefore takes the views as the independent units: the
+    cluster-robust sandwich S⁻¹ (Σ_v g_v g_vᵀ) S⁻¹ · V / (V − 1), g_v = J̃_vᵀ r_v the view's pull
+    on θ (J̃_v: its intrinsics Jacobian with its own pose eliminated, r_v its residuals, px). With
+    independent centre errors it agrees with σ² S⁻¹ within its sampling error (≈ √(2/V))."""
     normal = np.zeros((8, 8))
-    sum_sq, n_obs, n_views = 0.0, 0, 0
+    pulls = []
+    sum_sq, n_obs = 0.0, 0
     for obj, img in views:
         obj, img = np.asarray(obj, float), np.asarray(img, float)
         ok = np.isfinite(img).all(axis=1)
@@ -66,14 +78,22 @@ def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera
             continue
         J_g = pose_jacobian(obj[ok], pose.T_cam_plate, camera).reshape(-1, 6)
         J_t = intrinsics_jacobian(obj[ok], pose.T_cam_plate, camera)
-        normal += J_t.T @ J_t - J_t.T @ J_g @ np.linalg.solve(J_g.T @ J_g, J_g.T @ J_t)
-        sum_sq += float(np.nansum(pose.residuals_px**2))
-        n_obs += 2 * int(ok.sum())
-        n_views += 1
+        reduced = J_t - J_g @ np.linalg.solve(J_g.T @ J_g, J_g.T @ J_t)  # the view's pose eliminated
+        normal += reduced.T @ reduced
+        residuals = np.nan_to_num(np.asarray(pose.residuals_px, float).reshape(-1))  # (finite points only)
+        pulls.append(reduced.T @ residuals)
+        sum_sq += float(residuals @ residuals)
+        n_obs += residuals.size
+    n_views = len(pulls)
     dof = n_obs - 8 - 6 * n_views
-    if n_views == 0 or dof <= 0:
+    if n_views < 2 or dof <= 0:
         return np.full((8, 8), np.nan)
-    return sum_sq / dof * np.linalg.inv(normal)
+    inverse = np.linalg.inv(normal)
+    if not robust:
+        return sum_sq / dof * inverse
+    pulls = np.array(pulls)
+    pulls -= pulls.mean(axis=0)  # zero at the exact optimum; what the optimiser's tolerance leaves
+    return inverse @ (pulls.T @ pulls) @ inverse * n_views / (n_views - 1)
 
 
 def intrinsics_covariances(dots: pd.DataFrame, images: pd.DataFrame, cameras: Mapping[str, CameraModel],

@@ -80,13 +80,13 @@ def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera
         J_t = intrinsics_jacobian(obj[ok], pose.T_cam_plate, camera)
         reduced = J_t - J_g @ np.linalg.solve(J_g.T @ J_g, J_g.T @ J_t)  # the view's pose eliminated
         normal += reduced.T @ reduced
-        residuals = np.nan_to_num(np.asarray(pose.residuals_px, float).reshape(-1))  # (finite points only)
+        residuals = np.nan_to_num(np.asarray(pose.residuals_px, float).reshape(-1))  # NaN: a point the pose skipped
         pulls.append(reduced.T @ residuals)
         sum_sq += float(residuals @ residuals)
         n_obs += residuals.size
     n_views = len(pulls)
     dof = n_obs - 8 - 6 * n_views
-    if n_views < 2 or dof <= 0:
+    if n_views < (2 if robust else 1) or dof <= 0:  # the views' scatter needs two of them
         return np.full((8, 8), np.nan)
     inverse = np.linalg.inv(normal)
     if not robust:

@@ -91,8 +91,8 @@ def inverse(
 
     return_residual: return (commands, residual (N,)) instead and raise nothing, the residual being
     the largest |target − reached| of each pose in the least squares' weighted units (mm; direction
-    × direction_weight; with a spin weight it keeps the rotation about the tool axis, which five
-    axes cannot remove, and is then no convergence test).
+    × direction_weight; with a spin weight it keeps the rotation that A and C cannot make, and is
+    then no convergence test).
     """
     target_p = np.atleast_2d(np.asarray(tip_position_mm, dtype=float))
     target_d = np.atleast_2d(np.asarray(tool_direction, dtype=float))

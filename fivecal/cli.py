@@ -74,13 +74,12 @@ def simulate(
 
 def _on_valid_campaign(campaign: Path, run):
     """Run ``run()`` on a campaign whose folder, metadata and manifest pass the campaign-level
-    checks; otherwise print the error (it names the file) and exit 2, before any Prefect server
-    starts or anything is written."""
-    from tasks.ingest import CampaignError, load_campaign_metadata, load_manifest
+    checks (tasks.ingest.read_checked_manifest); otherwise print the error (it names the file) and
+    exit 2, before any Prefect server starts or anything is written."""
+    from tasks.ingest import CampaignError, read_checked_manifest
 
     try:
-        load_campaign_metadata(campaign)
-        load_manifest(campaign)
+        read_checked_manifest(campaign)
         return run()
     except CampaignError as e:
         typer.echo(f"error: {e}", err=True)

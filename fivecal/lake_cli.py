@@ -18,19 +18,23 @@ def query(
     results: ResultsOption = None,
     format: Annotated[str, typer.Option("--format", help="table, csv or json")] = "table",
     max_rows: Annotated[int, typer.Option(help="rows printed by --format table (0: all)")] = 100,
+    memory_limit: Annotated[str, typer.Option(help="DuckDB's memory limit for the query, e.g. 1GB, 500MB")] = "1GB",
 ) -> None:
-    """Run SQL over every table of the results lake (DuckDB; docs/queries.md) and print the result."""
-    from tasks.lake_query import FORMATS, LakeQueryError, format_result, run_query
+    """Run one read-only SQL query (SELECT) over every table of the results lake (DuckDB; docs/queries.md)
+    and print the result as it streams."""
+    from tasks.lake_query import FORMATS, LakeQueryError, print_result, query_batches
 
     if format not in FORMATS:
         typer.echo(f"error: --format {format!r}: choose one of {', '.join(FORMATS)}", err=True)
         raise typer.Exit(2)
+    batches = query_batches(sql, results, memory_limit)
     try:
-        result = run_query(sql, results)
+        print_result(batches, typer.echo, format, max_rows)
     except LakeQueryError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None
-    typer.echo(format_result(result, format, max_rows))
+    finally:
+        batches.close()
 
 
 def reproduce(

@@ -1,8 +1,9 @@
 """Ingest a measurement campaign: check the folder against its contract, check every image, and
 write the ``images`` table of the results lake.
 
-A campaign-level fault (no manifest, unreadable metadata, a missing column, no images) stops the
-flow before anything is written. Image-level faults are recorded in the table, one status and
+A campaign-level fault (no manifest, metadata that breaks its schema, a missing column, no usable
+image, more faulty rows than tasks.ingest.MAX_FAULT_FRACTION) stops the flow before anything is
+written. Image-level faults are recorded in the table, one status and
 message per manifest row, and the rest goes on. Re-ingesting an unchanged campaign decodes no
 image: the per-chunk checks are cached by file content.
 """
@@ -15,7 +16,7 @@ from typing import Any
 from prefect import flow, get_run_logger
 
 from flows.runners import image_task_runner
-from tasks.ingest import CHUNK_SIZE, format_summary, image_chunks, summarise
+from tasks.ingest import CHUNK_SIZE, check_usable, format_summary, image_chunks, summarise
 from tasks.ingest_steps import assemble_images_table, check_image_chunk, read_campaign, write_images_table
 
 MAX_LOGGED_FAULTS = 20
@@ -43,6 +44,7 @@ def ingest_campaign(campaign: str, results_root: str | None = None, chunk_size: 
     file_facts = [f.result() for f in futures]
     n_cached = sum(f.state.name == "Cached" for f in futures)
     images = assemble_images_table(metadata, typed, faults, file_facts)
+    check_usable(folder, images)  # a campaign of mostly faults is refused before anything is written
     table = write_images_table(folder, images, None if results_root is None else Path(results_root))
 
     summary = summarise(images) | {"chunks": len(chunks), "chunks_cached": n_cached, "table": str(table)}

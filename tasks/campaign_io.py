@@ -33,6 +33,13 @@ MANIFEST_COLUMNS = (
     "X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg", "timestamp", "temperature_c",
 )
 COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
+# The manifest's stage vocabulary (docs/campaign-format.md) and each stage's groups: any
+# non-empty name (a calibration trial), one of the axes (the axis a PDGE sweep moves), or the
+# stage's own name (None).
+MANIFEST_STAGES: dict[str, tuple[str, ...] | str | None] = {
+    "camera_calibration": "any", "pdge": ("X", "Y", "Z", "A", "C"), "pige": None, "validation": None,
+    "verification": None,
+}
 
 
 def _atomic_replace(path: Path, write: Callable[[str], None]) -> None:

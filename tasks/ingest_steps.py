@@ -23,11 +23,9 @@ from prefect.context import TaskRunContext
 from tasks.ingest import (
     build_images_table,
     check_image_files,
-    check_manifest,
     chunk_content_key,
     ingest_provenance,
-    load_campaign_metadata,
-    load_manifest,
+    read_checked_manifest,
 )
 from tasks.results_lake import write_partition
 
@@ -41,13 +39,12 @@ def _chunk_cache_key(context: TaskRunContext, parameters: dict[str, Any]) -> str
 
 @task(name="read-campaign", cache_policy=NO_CACHE, persist_result=False)
 def read_campaign(folder: Path) -> tuple[dict, pd.DataFrame, pd.DataFrame]:
-    """Campaign-level validation (raises CampaignError) and the vectorised manifest checks.
+    """Campaign-level validation (raises CampaignError, also when the manifest alone is mostly
+    faults) and the vectorised manifest checks.
 
     Returns (metadata, typed manifest, manifest faults); see tasks.ingest.check_manifest.
     """
-    metadata = load_campaign_metadata(folder)
-    typed, faults = check_manifest(load_manifest(folder), metadata)
-    return metadata, typed, faults
+    return read_checked_manifest(folder)
 
 
 @task(name="check-image-chunk", cache_key_fn=_chunk_cache_key, persist_result=True)

@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from fivecal import lake_cli, recalibrate_cli
+from fivecal.command_guard import GuardedTyper
 from fivecal.options import (
     DaskAddress,
     DaskWorkers,
@@ -19,7 +20,7 @@ from fivecal.options import (
     check_orientation,
 )
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+app = GuardedTyper(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
 
 DEMO_CAMPAIGN = Path("data/campaigns/demo")

@@ -1,0 +1,113 @@
+"""How every ``fivecal`` command ends: with its result, a clear message and exit 2, or promptly
+on Ctrl-C / SIGTERM — never a traceback, never a process left behind.
+
+:class:`GuardedTyper` is the CLI's ``typer.Typer``: each command it registers runs inside
+:func:`guarded`, which
+
+- turns an unexpected exception into ``error: <command> failed: <Type>: <message>`` on stderr and
+  exit 2 (``FIVECAL_DEBUG=1`` re-raises it, traceback and all); typer's and click's own exits
+  pass through;
+- makes SIGTERM end the command as Ctrl-C does (a KeyboardInterrupt in the main thread, so that
+  ``finally`` blocks and ``atexit`` hooks run, Prefect's temporary server among them), exit 130
+  for SIGINT and 143 for SIGTERM; if the command has not ended :data:`GRACE_S` seconds after the
+  signal (threads still busy with an image), or on a second signal, the temporary servers are
+  stopped and the process exits at once. Results are written atomically per partition
+  (tasks/results_lake.py), so the lake is left as a kill would leave it: every partition whole.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import click
+import typer
+
+from fivecal import server_guard
+
+GRACE_S = 5.0
+DEBUG_ENV = "FIVECAL_DEBUG"
+_EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
+_received: list[int] = []
+
+
+class GuardedTyper(typer.Typer):
+    """A ``typer.Typer`` whose commands run under :func:`guarded`."""
+
+    def command(self, *args: Any, **kwargs: Any) -> Callable[[Callable], Callable]:
+        register = super().command(*args, **kwargs)
+
+        def decorator(f: Callable) -> Callable:
+            register(guarded(f))
+            return f  # the plain function stays callable from Python (e.g. demo calls calibrate)
+
+        return decorator
+
+
+def guarded(command: Callable) -> Callable:
+    """``command`` ending as this module says."""
+
+    @functools.wraps(command)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        with _signals_end_the_command():
+            try:
+                return command(*args, **kwargs)
+            except (typer.Exit, typer.Abort, click.exceptions.Exit, click.exceptions.Abort, click.ClickException,
+                    SystemExit):
+                raise
+            except KeyboardInterrupt:
+                signum = _received[-1] if _received else signal.SIGINT
+                typer.echo(f"interrupted ({signal.Signals(signum).name}): stopped; every written partition of the "
+                           "results lake is whole", err=True)
+                raise typer.Exit(_EXIT_CODES.get(signum, 130)) from None
+            except Exception as e:
+                if os.environ.get(DEBUG_ENV):
+                    raise
+                name = command.__name__.replace("_", "-")
+                typer.echo(f"error: {name} failed: {type(e).__name__}: {e}\n(the results lake keeps every partition "
+                           f"whole; {DEBUG_ENV}=1 shows the traceback)", err=True)
+                raise typer.Exit(2) from None
+
+    return run
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    if _received:  # a second signal: now
+        _stop_now(signum)
+    _received.append(signum)
+    threading.Thread(target=_deadline, args=(signum,), name="stop-deadline", daemon=True).start()
+    raise KeyboardInterrupt
+
+
+def _deadline(signum: int) -> None:
+    time.sleep(GRACE_S)
+    _stop_now(signum)
+
+
+def _stop_now(signum: int) -> None:
+    """Stop the temporary Prefect servers and exit without waiting for busy threads."""
+    for process in server_guard.running_servers():
+        with contextlib.suppress(OSError):
+            process.terminate()
+    os._exit(_EXIT_CODES.get(signum, 130))
+
+
+@contextlib.contextmanager
+def _signals_end_the_command() -> Iterator[None]:
+    """SIGINT and SIGTERM handled by :func:`_on_signal` while the command runs (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, _on_signal) for s in _EXIT_CODES}
+    _received.clear()
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)

@@ -9,7 +9,8 @@ Layout (documented for other software in docs/campaign-format.md)::
       images/<camera>/<image_id>.png
       truth/             simulated campaigns only; no analysis stage reads it
 
-Writes are atomic: files go to a temporary name and are renamed into place.
+Writes are atomic and durable: files go to a temporary name, are fsync'd and renamed into place;
+they follow the umask like any file the user creates.
 """
 
 from __future__ import annotations
@@ -42,10 +43,36 @@ MANIFEST_STAGES: dict[str, tuple[str, ...] | str | None] = {
 }
 
 
+def current_umask() -> int:
+    """The process' file mode creation mask (read without changing it where Linux allows)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)  # elsewhere: set and restore (another thread could create a file meanwhile)
+    os.umask(mask)
+    return mask
+
+
+def fsync_path(path: str | Path) -> None:
+    """Flush a file's or a folder's data and metadata to the disk (``fsync``)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def _atomic_replace(path: Path, write: Callable[[str], None]) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it onto ``path``.
 
     Readers see the old file or the new one, never half of one; a failed write leaves no temp file.
+    The file gets the mode a plain ``open`` would give it (0666 less the umask), and the file and
+    then its folder are fsync'd around the rename, so that after a power cut the folder holds the
+    old file or the whole new one.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -53,10 +80,13 @@ def _atomic_replace(path: Path, write: Callable[[str], None]) -> None:
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~current_umask())
+        fsync_path(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    fsync_path(path.parent)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -19,15 +19,24 @@ Schemas: ``tasks.lake_schema`` registers every table's columns, keys and schema 
 ``data/results`` (relative to the working directory). The ``campaign_id`` column lives only in
 the folder name (hive partitioning); readers get it back from DuckDB's ``hive_partitioning``.
 
-Writes are atomic per partition: the new partition is written completely in a staging folder,
-then swapped with the old one by a single rename (Linux ``renameat2(RENAME_EXCHANGE)``; where
-that is unavailable, two renames, so a reader may briefly find the partition absent but never
-half of one). A re-run replaces a partition, never half of one. A writer killed mid-write leaves
-its staging folder behind, outside every table; the next write on the same host removes the
-folders of writers that are no longer running. Each file carries provenance (fivecal version,
-input content hash, parameters), the ``table``, ``campaign_id`` and the table's ``schema_version``
-(from ``tasks.lake_schema``; null for a table not in the registry) as JSON under the ``fivecal``
-key of its Parquet schema metadata; see :func:`read_provenance`.
+Writes are atomic per partition: the new partition is written completely in a staging folder
+(the Parquet file and the folder fsync'd), then swapped with the old one by a single rename
+(Linux ``renameat2(RENAME_EXCHANGE)``; where that is unavailable, two renames, so a reader may
+briefly find the partition absent but never half of one), and the folders involved are fsync'd
+after the swap, so that this holds across a power cut too. A re-run replaces a partition, never
+half of one. A writer killed mid-write leaves its staging folder behind, outside every table; the
+next write on the same host removes the folders of writers that are no longer running.
+:func:`write_partitions` replaces the partitions of several tables together: all are staged
+before the first swap, so an error while writing leaves every one of them as it was.
+
+Files and folders of the lake follow the umask, as any file the user creates: with umask 022
+partitions are 0644 in 0755 folders (a lab's shared results folder readable by colleagues), with
+umask 077 they are private (0600 / 0700).
+
+Each file carries provenance (fivecal version, input content hash, parameters), the ``table``,
+``campaign_id`` and the table's ``schema_version`` (from ``tasks.lake_schema``; null for a table
+not in the registry) as JSON under the ``fivecal`` key of its Parquet schema metadata; see
+:func:`read_provenance`.
 
 Plain DuckDB works as well::
 
@@ -58,7 +67,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from tasks import lake_schema
-from tasks.campaign_io import atomic_write_parquet
+from tasks.campaign_io import atomic_write_parquet, current_umask, fsync_path
 
 DEFAULT_RESULTS_DIR = Path("data/results")
 RESULTS_DIR_ENV = "FIVECAL_RESULTS_DIR"
@@ -101,6 +110,39 @@ def write_partition(table_name: str, campaign_id: str, df: pd.DataFrame, provena
     Atomic: on any error the previous partition (if any) is untouched and nothing is left behind;
     a killed writer leaves only its staging folder (outside the tables), removed by a later write.
     """
+    return write_partitions({table_name: df}, campaign_id, provenance, root)[table_name]
+
+
+def write_partitions(tables: dict[str, pd.DataFrame], campaign_id: str, provenance: dict[str, Any],
+                     root: str | Path | None = None) -> dict[str, Path]:
+    """Replace the partition ``campaign_id`` of every table of ``tables`` ({table: rows}), as
+    :func:`write_partition` does for one; returns {table: Parquet file}.
+
+    Every partition is written and fsync'd in the staging area before the first is swapped in,
+    so an error while preparing or writing any of them (a bad column, a full disk) leaves all the
+    tables as they were; the swaps then follow back to back (renames, microseconds each).
+    """
+    staging_root = results_root(root) / STAGING_DIR
+    staging_root.mkdir(parents=True, exist_ok=True)
+    _clean_staging(staging_root)
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for table_name, df in tables.items():
+            staged.append(_stage(table_name, campaign_id, df, provenance, root, staging_root))
+        for staging, dest in staged:
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            _swap_in(staging, dest)
+            fsync_path(dest.parent)  # the swap itself
+        fsync_path(staging_root)
+    finally:
+        for staging, _ in staged:  # the old partitions after the swaps, or the new ones after an error
+            shutil.rmtree(staging, ignore_errors=True)
+    return {name: dest / PART_FILE for name, (_, dest) in zip(tables, staged, strict=True)}
+
+
+def _stage(table_name: str, campaign_id: str, df: pd.DataFrame, provenance: dict[str, Any],
+           root: str | Path | None, staging_root: Path) -> tuple[Path, Path]:
+    """Write the partition into a new staging folder: (staging folder, the partition's folder)."""
     dest = partition_path(table_name, campaign_id, root)
     if PARTITION_COLUMN in df.columns:
         values = df[PARTITION_COLUMN].astype(str)
@@ -109,20 +151,17 @@ def write_partition(table_name: str, campaign_id: str, df: pd.DataFrame, provena
                              f"in the partition of {campaign_id}")
         df = df.drop(columns=PARTITION_COLUMN)
     df = lake_schema.conform(table_name, df)
-    staging_root = results_root(root) / STAGING_DIR
-    staging_root.mkdir(parents=True, exist_ok=True)
-    _clean_staging(staging_root)
     prefix = f"{table_name}.{campaign_id}.pid{os.getpid()}.{_host_tag()}."
     staging = Path(tempfile.mkdtemp(dir=staging_root, prefix=prefix))
     try:
+        os.chmod(staging, 0o777 & ~current_umask())  # mkdtemp's folder is private (0700)
         meta = {**provenance, "table": table_name, PARTITION_COLUMN: campaign_id,
                 "schema_version": lake_schema.schema_version(table_name)}
-        atomic_write_parquet(staging / PART_FILE, df, meta)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        _swap_in(staging, dest)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)  # the old partition after a swap, or a failed write
-    return dest / PART_FILE
+        atomic_write_parquet(staging / PART_FILE, df, meta)  # the file and the staging folder fsync'd
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return staging, dest
 
 
 def _host_tag() -> str:

@@ -54,7 +54,7 @@ from tasks.model_ladder import append_step, ladder_step
 from tasks.report import ReportData
 from tasks.report.residual_figures import residual_report
 from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
-from tasks.results_lake import partition_path, read_table, write_partition
+from tasks.results_lake import partition_path, read_table, write_partitions
 from tasks.verification import (
     capture_errors,
     modelled_errors,
@@ -206,28 +206,28 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                   "effect_modules": list(effect_modules or [])}
     pdge_table, pige_table = result.pdge.table, result.pige_table(propagated)
     compensation_rows = compensation_table(ids, commands, compensation)
-    tables = {}
-    for name, df in (("pdge", pdge_table), ("pige", pige_table), ("compensation", compensation_rows),
-                     ("verification", verification), ("formulations", formulations)):
-        tables[name] = str(write_partition(name, campaign_id, df, provenance, root))
+    # The step's tables are written together once all of them are computed (write_partitions):
+    # an error anywhere before leaves every table of the campaign as it was.
+    pending = {"pdge": pdge_table, "pige": pige_table, "compensation": compensation_rows,
+               "verification": verification, "formulations": formulations}
 
     # where the model fails: residuals against everything they could depend on, and the ladder
     residuals = pose_residual_table(machine, result.model, measurements, dots)
     dot_residuals = dot_residual_table(dots, measurements, cameras, plates_of(machine))
-    tables["residuals"] = str(write_partition("residuals", campaign_id, residuals, provenance, root))
-    tables["dot_residuals"] = str(write_partition("dot_residuals", campaign_id, dot_residuals, provenance, root))
+    pending |= {"residuals": residuals, "dot_residuals": dot_residuals}
     cv = cross_validate_task.submit(machine, result.model, result.pige.specs, measurements)
     cv_rms = cv.result()
     cached["cross_validate"] = cv.state.name == "Cached"
-    ladder = append_step(campaign_id, ladder_step(machine, result.model, fit, measurements, cv_rms=cv_rms),
-                         provenance, root)
-    tables["model_ladder"] = str(partition_path("model_ladder", campaign_id, root))
-    sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras)
     logger.info("diagnosis: scoring every catalogue effect the model lacks")
     diag_future = diagnose_task.submit(machine, measurements, result)
     diagnosis = diag_future.result()
     cached["diagnose"] = diag_future.state.name == "Cached"
-    tables["diagnosis"] = str(write_partition("diagnosis", campaign_id, diagnosis.table, provenance, root))
+    pending["diagnosis"] = diagnosis.table
+    tables = {name: str(path) for name, path in write_partitions(pending, campaign_id, provenance, root).items()}
+    ladder = append_step(campaign_id, ladder_step(machine, result.model, fit, measurements, cv_rms=cv_rms),
+                         provenance, root)
+    tables["model_ladder"] = str(partition_path("model_ladder", campaign_id, root))
+    sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras)
     sections = [("What the model lacks (diagnosis)", "\n\n".join(diagnosis.sentences)), *sections]
     logger.info("diagnosis:\n" + "\n".join(diagnosis.sentences))
 

@@ -15,8 +15,9 @@ from flows.ingest import ingest_campaign
 from flows.runners import image_task_runner, subflow_task_runner
 from tasks.ingest import load_campaign_metadata
 from tasks.machine import CALIBRATION_STAGE
+from tasks.results_lake import write_partitions
 from tasks.vision import campaign_plates, content_key, detection_chunks, with_detection_inputs
-from tasks.vision_steps import calibrate, detect_chunk, poses, read_images, write_table
+from tasks.vision_steps import calibrate, detect_chunk, poses, read_images
 
 CHUNK_SIZE = 32
 
@@ -60,8 +61,10 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     provenance = {"fivecal_version": fivecal.__version__, "detector": detector,
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
                   "campaign": str(folder)}
-    tables = {name: str(write_table(name, campaign_id, df, provenance, root)) for name, df in
-              (("dots", dots), ("camera_calibration", calibration), ("poses", pose_table))}
+    # the step's three tables together: all replaced, or (an error before the swaps) none
+    written = write_partitions({"dots": dots, "camera_calibration": calibration, "poses": pose_table}, campaign_id,
+                               provenance, root)
+    tables = {name: str(path) for name, path in written.items()}
     summary = {
         "campaign_id": campaign_id, "n_images": len(images), "n_ingested_ok": ingest_summary["n_ok"],
         "n_detected": int((detections["detection_status"] == "ok").sum()),

@@ -32,7 +32,7 @@ from threadpoolctl import threadpool_limits
 from tasks.camera_model import CameraModel
 from tasks.machine import CALIBRATION_STAGE
 from tasks.plate import DotPlate
-from tasks.results_lake import read_table, write_partition
+from tasks.results_lake import read_table
 from tasks.vision import PRIOR_COLUMNS, calibrate_cameras, content_key, detect_images, plate_poses
 
 _numeric_lock = threading.Lock()
@@ -111,9 +111,3 @@ def poses(dots: pd.DataFrame, detections: pd.DataFrame, cameras: dict[str, Camer
     """PnP pose with covariance of every image (OpenCV and BLAS on one thread); plates: {plate name: DotPlate}."""
     with one_numeric_thread():
         return plate_poses(dots, detections, cameras, plates)
-
-
-@task(name="write-table", cache_policy=NO_CACHE, persist_result=False)
-def write_table(name: str, campaign_id: str, df: pd.DataFrame, provenance: dict, results_root: Path | None) -> Path:
-    """Replace the campaign's partition of one result table (atomic)."""
-    return write_partition(name, campaign_id, df, provenance, results_root)

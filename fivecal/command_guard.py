@@ -7,11 +7,12 @@ on Ctrl-C / SIGTERM — never a traceback, never a process left behind.
 - turns an unexpected exception into ``error: <command> failed: <Type>: <message>`` on stderr and
   exit 2 (``FIVECAL_DEBUG=1`` re-raises it, traceback and all); typer's and click's own exits
   pass through;
-- makes SIGTERM end the command as Ctrl-C does (a KeyboardInterrupt in the main thread, so that
-  ``finally`` blocks and ``atexit`` hooks run, Prefect's temporary server among them), exit 130
-  for SIGINT and 143 for SIGTERM; if the command has not ended :data:`GRACE_S` seconds after the
-  signal (threads still busy with an image), or on a second signal, the temporary servers are
-  stopped and the process exits at once. Results are written atomically per partition
+- makes SIGTERM end the command as Ctrl-C does: a KeyboardInterrupt in the main thread (so that
+  ``finally`` blocks run: a writer removes its staging folder), then the temporary Prefect servers
+  are stopped and the process exits at once (``os._exit``: no waiting for threads busy with an
+  image), 130 for SIGINT and 143 for SIGTERM. If the interrupt has not reached the command
+  :data:`GRACE_S` seconds after the signal, or on a second signal, the same happens from a
+  watchdog thread. Results are written atomically per partition
   (tasks/results_lake.py), so the lake is left as a kill would leave it: every partition whole.
 """
 
@@ -21,6 +22,7 @@ import contextlib
 import functools
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -65,6 +67,8 @@ def guarded(command: Callable) -> Callable:
                 signum = _received[-1] if _received else signal.SIGINT
                 typer.echo(f"interrupted ({signal.Signals(signum).name}): stopped; every written partition of the "
                            "results lake is whole", err=True)
+                if _received:  # a real signal: end now, as a kill would, without waiting for busy threads
+                    _stop_now(signum)
                 raise typer.Exit(_EXIT_CODES.get(signum, 130)) from None
             except Exception as e:
                 if os.environ.get(DEBUG_ENV):
@@ -92,6 +96,9 @@ def _deadline(signum: int) -> None:
 
 def _stop_now(signum: int) -> None:
     """Stop the temporary Prefect servers and exit without waiting for busy threads."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
     for process in server_guard.running_servers():
         with contextlib.suppress(OSError):
             process.terminate()

@@ -30,6 +30,7 @@ from typing import Any
 
 import click
 import typer
+from typer.exceptions import TyperException
 
 from fivecal import server_guard
 
@@ -37,6 +38,9 @@ GRACE_S = 5.0
 DEBUG_ENV = "FIVECAL_DEBUG"
 _EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
 _received: list[int] = []
+# exits and usage errors of typer (which vendors its own click) and click: theirs to report
+_PASS_THROUGH = (typer.Exit, typer.Abort, TyperException, click.exceptions.Exit, click.exceptions.Abort,
+                 click.ClickException, SystemExit)
 
 
 class GuardedTyper(typer.Typer):
@@ -60,8 +64,7 @@ def guarded(command: Callable) -> Callable:
         with _signals_end_the_command():
             try:
                 return command(*args, **kwargs)
-            except (typer.Exit, typer.Abort, click.exceptions.Exit, click.exceptions.Abort, click.ClickException,
-                    SystemExit):
+            except _PASS_THROUGH:
                 raise
             except KeyboardInterrupt:
                 signum = _received[-1] if _received else signal.SIGINT

@@ -3,6 +3,7 @@
 import json
 import re
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -190,3 +191,82 @@ def test_lake_partitions_shows_schema_and_fivecal_versions(lake_of_two):
     pige = df[df["table"] == "pige"].set_index("campaign_id")
     assert pige.loc[SECOND, "fivecal_version"] == "test" and pige.loc[SECOND, "schema_version"] == 2
     assert pige.loc[first, "num_rows"] == len(read_table("pige", root, first))
+
+
+# --------------------------------------------------------------------------------------------
+# read-only, confined to the lake, memory-limited, streamed
+
+
+def lake_files(root: Path) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+@pytest.mark.parametrize("sql, expected", [
+    ("copy (select 'evil2' as campaign_id, 1 as x) to '{root}/pige' (format parquet, partition_by (campaign_id))",
+     "COPY statements are not allowed: fivecal query is read-only"),
+    ("copy pige to '{outside}/stolen.csv'", "COPY statements are not allowed"),
+    ("attach '{outside}/new.duckdb' as other", "ATTACH statements are not allowed"),
+    ("attach ':memory:' as other", "ATTACH statements are not allowed"),
+    ("install httpfs", "statements are not allowed"),
+    ("load httpfs", "statements are not allowed"),
+    ("set enable_external_access = true", "SET statements are not allowed"),
+    ("pragma memory_limit = '100GB'", "SET statements are not allowed"),
+    ("pragma version", "PRAGMA statements are not allowed"),
+    ("create table t as select 1", "CREATE statements are not allowed"),
+    ("select 1; select 2", "give one SQL statement per query (got 2)"),
+    ("select * from read_csv('/etc/passwd')", "Permission Error"),
+    ("select * from read_text('/etc/hostname')", "Permission Error"),
+    ("select * from glob('/etc/*')", "Permission Error"),
+    ("select * from read_text('{outside}/secret.txt')", "Permission Error"),
+    ("select * from query('copy (select 1) to ''{outside}/x.csv''')", "Error"),
+])
+def test_the_query_is_read_only_and_confined_to_the_lake(two_campaigns, tmp_path, sql, expected):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "secret.txt").write_text("secret")
+    before, outside_before = lake_files(two_campaigns), lake_files(outside)
+    sql = sql.format(root=two_campaigns, outside=outside)
+    result = runner.invoke(app, ["query", "--results", str(two_campaigns), sql])
+    assert result.exit_code == 2 and result.output.startswith("error: "), result.output
+    assert expected in result.output and "Traceback" not in result.output
+    assert "secret" not in result.output.replace("secret.txt", "")
+    assert lake_files(two_campaigns) == before and lake_files(outside) == outside_before
+    assert run_query("select distinct campaign_id from pige order by 1", two_campaigns).campaign_id.tolist() == [
+        "20260105", "w02"]
+
+
+def test_the_lake_itself_stays_readable_and_the_error_says_how_to_open_a_full_session(two_campaigns):
+    files = run_query("select file from glob('" + str(two_campaigns.resolve()) + "/**/*.parquet')", two_campaigns)
+    assert len(files) == 2
+    result = runner.invoke(app, ["query", "--results", str(two_campaigns), "select * from read_csv('/etc/passwd')"])
+    assert "docs/queries.md" in result.output
+
+
+def test_max_rows_costs_what_it_prints(two_campaigns):
+    start = time.monotonic()
+    result = runner.invoke(app, ["query", "--results", str(two_campaigns), "--max-rows", "3",
+                                 "select * from range(300000000)"])
+    elapsed = time.monotonic() - start
+    assert result.exit_code == 0, result.output
+    assert [line.strip() for line in result.output.split("\n")[:4]] == ["range", "0", "1", "2"]
+    assert "more rows not shown (the first 3 above" in result.output
+    assert elapsed < 20, elapsed  # 3e8 rows would take minutes and GBs to load before printing
+
+
+def test_a_query_over_its_memory_limit_is_a_clear_error_exit_2(two_campaigns):
+    result = runner.invoke(app, ["query", "--results", str(two_campaigns), "--memory-limit", "64MB",
+                                 "select count(distinct range::varchar) from range(30000000)"])
+    assert result.exit_code == 2 and result.output.startswith("error: "), result.output
+    assert "Out of Memory" in result.output and "Traceback" not in result.output
+
+
+def test_csv_and_json_stream_every_row(two_campaigns):
+    csv = runner.invoke(app, ["query", "--results", str(two_campaigns), "--format", "csv",
+                              "select range as i from range(25000)"])
+    assert csv.output.splitlines() == ["i", *map(str, range(25000))]  # three batches of 10 000
+    js = runner.invoke(app, ["query", "--results", str(two_campaigns), "--format", "json",
+                             "select range as i from range(25000)"])
+    assert json.loads(js.output) == [{"i": i} for i in range(25000)]
+    empty = runner.invoke(app, ["query", "--results", str(two_campaigns), "--format", "json",
+                                "select 1 as i where false"])
+    assert json.loads(empty.output) == []

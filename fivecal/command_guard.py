@@ -66,13 +66,6 @@ def guarded(command: Callable) -> Callable:
                 return command(*args, **kwargs)
             except _PASS_THROUGH:
                 raise
-            except KeyboardInterrupt:
-                signum = _received[-1] if _received else signal.SIGINT
-                typer.echo(f"interrupted ({signal.Signals(signum).name}): stopped; every written partition of the "
-                           "results lake is whole", err=True)
-                if _received:  # a real signal: end now, as a kill would, without waiting for busy threads
-                    _stop_now(signum)
-                raise typer.Exit(_EXIT_CODES.get(signum, 130)) from None
             except Exception as e:
                 if os.environ.get(DEBUG_ENV):
                     raise
@@ -80,8 +73,27 @@ def guarded(command: Callable) -> Callable:
                 typer.echo(f"error: {name} failed: {type(e).__name__}: {e}\n(the results lake keeps every partition "
                            f"whole; {DEBUG_ENV}=1 shows the traceback)", err=True)
                 raise typer.Exit(2) from None
+            except BaseException as e:
+                if not _is_interrupt(e):
+                    raise
+                signum = _received[-1] if _received else signal.SIGINT
+                typer.echo(f"interrupted ({signal.Signals(signum).name}): stopped; every written partition of the "
+                           "results lake is whole", err=True)
+                if _received:  # a real signal: end now, as a kill would, without waiting for busy threads
+                    _stop_now(signum)
+                raise typer.Exit(_EXIT_CODES.get(signum, 130)) from None
 
     return run
+
+
+def _is_interrupt(e: BaseException) -> bool:
+    """Ctrl-C, or the exception Prefect's own SIGTERM handler raises while a flow runs (recognised
+    by name: importing prefect here would slow every command down by a second)."""
+    if type(e).__name__ == "TerminationSignal" and type(e).__module__.startswith("prefect"):
+        if not _received:
+            _received.append(signal.SIGTERM)
+        return True
+    return isinstance(e, KeyboardInterrupt)
 
 
 def _on_signal(signum: int, frame: Any) -> None:

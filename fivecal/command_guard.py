@@ -5,8 +5,8 @@ on Ctrl-C / SIGTERM — never a traceback, never a process left behind.
 :func:`guarded`, which
 
 - turns an unexpected exception into ``error: <command> failed: <Type>: <message>`` on stderr and
-  exit 2 (``FIVECAL_DEBUG=1`` re-raises it, traceback and all); typer's and click's own exits
-  pass through;
+  exit 2, and keeps Prefect from logging tracebacks meanwhile (``FIVECAL_DEBUG=1`` re-raises
+  the exception and leaves Prefect's logs whole); typer's and click's own exits pass through;
 - makes SIGTERM end the command as Ctrl-C does: a KeyboardInterrupt in the main thread (so that
   ``finally`` blocks run: a writer removes its staging folder), then the temporary Prefect servers
   are stopped and the process exits at once (``os._exit``: no waiting for threads busy with an
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import os
 import signal
 import sys
@@ -61,7 +62,7 @@ def guarded(command: Callable) -> Callable:
 
     @functools.wraps(command)
     def run(*args: Any, **kwargs: Any) -> Any:
-        with _signals_end_the_command():
+        with _signals_end_the_command(), _prefect_logs_without_tracebacks():
             try:
                 return command(*args, **kwargs)
             except _PASS_THROUGH:
@@ -118,6 +119,29 @@ def _stop_now(signum: int) -> None:
         with contextlib.suppress(OSError):
             process.terminate()
     os._exit(_EXIT_CODES.get(signum, 130))
+
+
+@contextlib.contextmanager
+def _prefect_logs_without_tracebacks() -> Iterator[None]:
+    """Prefect logs a failed task or flow with its whole traceback (hundreds of lines); the command
+    reports the error in one line instead. Unless $FIVECAL_DEBUG is set, records of Prefect's
+    loggers are made without their traceback while the command runs."""
+    if os.environ.get(DEBUG_ENV):
+        yield
+        return
+    previous = logging.getLogRecordFactory()
+
+    def factory(name, level, fn, lno, msg, args, exc_info, func=None, sinfo=None, **kwargs):
+        if exc_info and name.startswith("prefect"):
+            exc_info = None
+            msg = f"{msg} (traceback hidden; {DEBUG_ENV}=1 shows it)"
+        return previous(name, level, fn, lno, msg, args, exc_info, func, sinfo, **kwargs)
+
+    logging.setLogRecordFactory(factory)
+    try:
+        yield
+    finally:
+        logging.setLogRecordFactory(previous)
 
 
 @contextlib.contextmanager

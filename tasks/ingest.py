@@ -231,8 +231,8 @@ def load_manifest(folder: str | Path) -> pd.DataFrame:
     and "" when absent; extra columns are ignored) and ``malformed`` ("" or why the row's field
     count differs from the header's — such a row is kept, padded or cut to the header, and
     flagged by :func:`check_manifest`). Raises :class:`CampaignError` naming the file when it is
-    missing, unreadable, larger than :data:`MAX_MANIFEST_BYTES`, not CSV, lacks a required column
-    or has no data row.
+    missing, unreadable, larger than :data:`MAX_MANIFEST_BYTES`, not CSV, lacks a required column,
+    has no data row, or has more than :data:`MAX_FAULT_FRACTION` of its rows of the wrong width.
     """
     path = Path(folder) / MANIFEST_FILE
     try:

@@ -45,6 +45,7 @@ from tasks.capture_request import (
 from tasks.compensation import check_objective, compensation_table, desired_tip_poses
 from tasks.context import PoseContext
 from tasks.detector_comparison import intrinsics_from_table
+from tasks.diagnosis.verdict import residual_follows_sentence
 from tasks.effects import load_effect_modules, parse_effect
 from tasks.error_model import ErrorModel
 from tasks.identification.measurements import assemble_measurements, capture_context
@@ -55,7 +56,7 @@ from tasks.machine import CALIBRATION_STAGE
 from tasks.model_ladder import append_step, compensated_tip_errors, ladder_step
 from tasks.report import ReportData
 from tasks.report.residual_figures import residual_report
-from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
+from tasks.residuals import dot_residual_table, plates_of, pose_residual_table, trend_summary
 from tasks.results_lake import partition_path, read_table, write_partition
 from tasks.simulate import read_truth
 from tasks.verification import (
@@ -240,8 +241,11 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     diagnosis = diag_future.result()
     cached["diagnose"] = diag_future.state.name == "Cached"
     tables["diagnosis"] = str(write_partition("diagnosis", campaign_id, diagnosis.table, provenance, root))
-    sections = [("What the model lacks (diagnosis)", "\n\n".join(diagnosis.sentences)), *sections]
-    logger.info("diagnosis:\n" + "\n".join(diagnosis.sentences))
+    sentences = list(diagnosis.sentences)
+    if diagnosis.best is None:  # no family explains it: say what the residual follows
+        sentences += [s for s in [residual_follows_sentence(trend_summary(residuals), VALIDATION_CAMERA)] if s]
+    sections = [("What the model lacks (diagnosis)", "\n\n".join(sentences)), *sections]
+    logger.info("diagnosis:\n" + "\n".join(sentences))
 
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out_dir = Path(reports_root) / campaign_id / run
@@ -258,7 +262,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     logger.info(f"verification means:\n{summary_rows.round(2).to_string()}")
     return {"campaign_id": campaign_id, "report": str(paths["html"]), "markdown": str(paths["markdown"]),
             "cv_rms": cv_rms, "effects": [e.spec() for e in result.model.effects],
-            "diagnosis": diagnosis.sentences, "diagnosis_best": diagnosis.best,
+            "diagnosis": sentences, "diagnosis_best": diagnosis.best,
             "tables": tables, "cached": cached, "sigma2": fit.sigma2,
             "capture": str(capture_folder), "capture_state": capture_state,
             "verification_means": summary_rows.reset_index().to_dict("records")}  # unrounded: no double rounding

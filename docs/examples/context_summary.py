@@ -1,7 +1,8 @@
 """Print the tip errors of the context walk-through (docs/walkthrough.md, "Effects that depend on
 direction, time or a user's own variable"): per campaign, each model-ladder step with its
 cross-validated RMS and the tip error after compensating with that step's model (VBM and truth), the
-true tip error before compensation, and the ratio of the last step to the clean campaign of the same
+true tip error before compensation and how far the hidden effect moves it there (against the clean
+campaign of the same seed, pose by pose), and the ratio of the last step to the clean campaign of the same
 seed.
 
     python docs/examples/context_summary.py RESULTS_ROOT CAMPAIGN_ID...   # clean-s<seed> are the references
@@ -13,6 +14,19 @@ import pandas as pd
 
 from tasks.model_ladder import read_ladder
 from tasks.results_lake import read_table
+
+
+def _before_truth(root: str, cid: str) -> pd.DataFrame:
+    v = read_table("verification", root, cid)
+    return v[(v["phase"] == "before") & (v["source"] == "truth")].set_index("image_id")[["dx_um", "dy_um", "dz_um"]]
+
+
+def _before_shift(root: str, cid: str) -> float:
+    """Mean over the validation poses of how far the hidden effect moves the true tip before
+    compensation: ‖Δ(dx, dy, dz)‖ against the clean campaign of the same seed (same poses), µm."""
+    clean = "clean-" + cid.rsplit("-", 1)[-1]
+    a, b = _before_truth(root, cid), _before_truth(root, clean)
+    return float(((a - b.loc[a.index]) ** 2).sum(axis=1).pow(0.5).mean())
 
 
 def summary(root: str, campaign_ids: list[str]) -> pd.DataFrame:
@@ -29,6 +43,7 @@ def summary(root: str, campaign_ids: list[str]) -> pd.DataFrame:
                          "after_vbm_arcsec": r.compensated_vbm_orientation_arcsec,
                          "after_truth_arcsec": r.compensated_truth_orientation_arcsec})
     out = pd.DataFrame(rows)
+    out["before_truth_shift_um"] = out["campaign"].map({cid: _before_shift(root, cid) for cid in campaign_ids})
     seed = out["campaign"].str.extract(r"-(s\d+)$")[0]
     clean = out[out["campaign"].str.startswith("clean-")].groupby(seed).last()
     for q in ("after_vbm_um", "after_truth_um"):

@@ -13,7 +13,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 from prefect import flow, get_run_logger
 from prefect.task_runners import ThreadPoolTaskRunner
@@ -43,7 +42,6 @@ from tasks.capture_request import (
     write_capture_request,
 )
 from tasks.compensation import check_objective, compensation_table, desired_tip_poses
-from tasks.context import PoseContext
 from tasks.detector_comparison import intrinsics_from_table
 from tasks.diagnosis.verdict import residual_follows_sentence
 from tasks.effects import load_effect_modules, parse_effect
@@ -160,10 +158,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     commands = validation.commands
     # the context each compensated move will have in the capture: approach, time, temperature
     campaign_context = capture_context(images)
-    planned = planned_capture_context(commands, PoseContext(np.zeros((len(campaign_context), 5)),
-                                                            campaign_context["time_s"].to_numpy(float),
-                                                            campaign_context["temperature_c"].to_numpy(float)),
-                                      verification_repeats)
+    planned = planned_capture_context(commands, campaign_context["time_s"].to_numpy(float),
+                                      campaign_context["temperature_c"].to_numpy(float), verification_repeats)
     comp = compensate_task.submit(machine, result.model, commands, orientation, planned)
     compensation = comp.result()
     compensated = compensation.commands

@@ -79,25 +79,25 @@ def capture_times(campaign_times_s: np.ndarray, n_rows: int) -> np.ndarray:
     return t[-1] + (CAPTURE_GAP_IMAGES + 1 + np.arange(n_rows)) * dt
 
 
-def planned_capture_context(commands: np.ndarray, campaign: PoseContext, repeats: int = 1) -> PoseContext:
+def planned_capture_context(commands: np.ndarray, campaign_time_s: np.ndarray, campaign_temperature_c: np.ndarray,
+                            repeats: int = 1) -> PoseContext:
     """The context each of the N poses at ``commands`` (N, 5; mm, deg) will have in the capture of
     :func:`capture_rows`, for compensating them (analysis side, from the campaign's own record):
 
     - approach: the direction from which each axis arrives when the capture drives through its
       first pass from home (the order of the rows), as a controller's reversal compensation takes it;
-    - time_s: the planned times (:func:`capture_times` after the campaign's ``time_s``), averaged
-      over a pose's ``repeats`` (the VBM averages its images);
+    - time_s: the planned times (:func:`capture_times` after the campaign's), averaged over a pose's
+      ``repeats`` (the VBM averages its images);
     - temperature_c: the campaign's last recorded temperature, held (a temperature the capture
       will only measure cannot be known before it).
 
-    campaign: the context of the campaign's images (all manifest rows; only time_s and
-    temperature_c are used). Returns a :class:`PoseContext` of N rows."""
+    campaign_time_s, campaign_temperature_c: (M,) s since the first image and °C of every image of
+    the campaign (:func:`tasks.identification.measurements.capture_context`). Returns N rows."""
     commands = np.asarray(commands, dtype=float)
     n, repeats = len(commands), check_repeats(repeats)
-    approach = approach_directions(commands)
-    times = capture_times(campaign.time_s, n * repeats).reshape(repeats, n).mean(axis=0)
-    last = int(np.argmax(campaign.time_s))
-    return PoseContext(approach, times, np.full(n, float(campaign.temperature_c[last])))
+    times = capture_times(campaign_time_s, n * repeats).reshape(repeats, n).mean(axis=0)
+    last = float(np.asarray(campaign_temperature_c, dtype=float)[np.argmax(campaign_time_s)])
+    return PoseContext(approach_directions(commands), times, np.full(n, last))
 
 
 def write_capture_request(campaign_folder: Path, out_folder: Path, rows: pd.DataFrame) -> Path:

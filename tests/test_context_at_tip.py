@@ -123,7 +123,7 @@ def test_compensation_in_the_planned_context_removes_the_context_effects(machine
     cmds, campaign = validation_poses(machine, 6, seed=2)
     model = load_prototype_errors()
     model.effects = [parse_effect(s, user_families) for s in HIDDEN]
-    planned = planned_capture_context(cmds, campaign)
+    planned = planned_capture_context(cmds, campaign.time_s, campaign.temperature_c)
     desired = desired_tip_poses(machine, cmds)
     with_context = compensate(machine, model, cmds, context=planned).commands
     without = compensate(machine, model, cmds).commands

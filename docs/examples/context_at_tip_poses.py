@@ -4,8 +4,9 @@ repeats, 150 five-axis poses, 30 validation poses), exact poses plus pose noise,
 
 Per seed (the plan's and the noise's) and hidden effect (none; 20 µm/h time-driven thermal drift on X;
 8 µm backlash on Z; the user family docs/examples/cross_backlash.py, 8 µm along Y by X's approach):
-calibrate, diagnose (the user's family first unknown, then registered), refit with the diagnosis' best
-spec, and for both models compensate the validation poses in the capture's planned context and play
+calibrate, diagnose (the user's family first unknown, then registered), refit with the diagnosis' spec
+(the accepted one or, with none accepted, its best candidate), and for both models compensate the
+validation poses in the capture's planned context and play
 the capture: the true tip error (each capture image in its context) and the VBM's (the capture's plate
 poses with pose noise). Prints one row per (seed, hidden effect, model).
 
@@ -80,9 +81,12 @@ def main(seeds):
                 load_effect_modules([MODULE], entry_point_group=None)
                 d = diagnose(machine, meas, base, max_effects=1)
                 note = f"without the module: {note}; with it: {d.best}"
+            # the accepted spec, or with none accepted the best candidate (as context_walkthrough.sh)
+            spec_added = d.best or (d.table.iloc[0].spec if name != "none" else None)
             models = [("base", base.model)]
-            if d.best:
-                models.append((d.best, calibrate(machine, meas, base=ErrorModel(effects=[parse_effect(d.best)])).model))
+            if spec_added:
+                models.append((spec_added, calibrate(machine, meas, base=ErrorModel(effects=[parse_effect(spec_added)]))
+                               .model))
             if name == "user":
                 EFFECTS.clear()
                 EFFECTS.update(before)

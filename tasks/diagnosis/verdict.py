@@ -85,7 +85,7 @@ def explained_sentence(camera: str, direction: str, cand: Candidate, spec: str, 
             f"of it ({p_text(p)}, ΔBIC {delta_bic:+.0f}{cv})")
 
 
-def residual_follows_sentence(trends, camera: str, limit: int = 3) -> str | None:
+def residual_follows_sentence(trends, camera: str, limit: int = 5) -> str | None:
     """When no candidate is accepted: the variables ``camera``'s residual follows beyond its band, from
     :func:`tasks.residuals.trend_summary` (``trends``), strongest first (χ² per bin), at most ``limit``,
     each with the component that follows it most and the span of its bin means (µm or arcsec). None

@@ -362,3 +362,22 @@ def test_camera_effects_act_on_the_pose_as_a_pnp_with_the_calibrated_intrinsics_
             real = se3.log(se3.inverse(T[i]) @ measured)
             assert np.linalg.norm(b[i] - real) < 0.02 * np.linalg.norm(real), (b[i], real)
     assert b.shape == (3, 6)
+
+
+def test_with_nothing_accepted_the_verdict_names_what_the_residual_follows():
+    """The strongest significant trends of the camera's residual, one per variable, strongest χ² per bin
+    first; nothing when no trend leaves its band or the camera has none."""
+    import pandas as pd
+
+    from tasks.diagnosis.verdict import residual_follows_sentence
+
+    trends = pd.DataFrame({
+        "camera": ["camera1", "camera1", "camera1", "camera1", "camera2"],
+        "variable": ["approach_X", "approach_X", "time_s", "Z_mm", "A_deg"],
+        "component": ["cam_dy_um", "cam_rx_arcsec", "cam_dy_um", "cam_dz_um", "cam_dx_um"],
+        "n_bins": [2, 2, 10, 10, 10], "span": [7.9, 3.0, 3.6, 1.0, 9.0],
+        "significant": [True, True, True, False, True], "chi2": [190.0, 30.0, 250.0, 500.0, 999.0]})
+    sentence = residual_follows_sentence(trends, "camera1")
+    assert sentence.index("approach_X (cam_dy_um spans 7.9 um, χ²/bin 95)") < sentence.index("time_s (cam_dy_um")
+    assert "Z_mm" not in sentence and "A_deg" not in sentence and "cam_rx_arcsec" not in sentence
+    assert residual_follows_sentence(trends[trends.camera == "camera2"], "camera1") is None

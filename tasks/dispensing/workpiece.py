@@ -35,8 +35,8 @@ class Workpiece:
     rows: int = 7
     cols: int = 9
     pitch_mm: float = 6.0
-    ring_inner_mm: float = 2.0
-    ring_outer_mm: float = 3.0
+    ring_inner_mm: float = 2.4
+    ring_outer_mm: float = 3.4
     standoff_mm: float = 0.2
     dot_diameter_mm: float = 0.8
 

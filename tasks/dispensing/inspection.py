@@ -282,6 +282,15 @@ class Ring:
     edge_ratio: float
 
 
+def convexity(contour: np.ndarray, tolerance_px: float = 1.5) -> float:
+    """Share of an edge contour's points within ``tolerance_px`` of its convex hull: 1 for a convex
+    curve (an edge traced along both of its sides included), low for a wiggly or concave one."""
+    hull = cv2.convexHull(contour)
+    pts = contour[:, 0, :].astype(np.float32)
+    dist = np.array([cv2.pointPolygonTest(hull, (float(x), float(y)), True) for x, y in pts])
+    return float(np.mean(dist <= tolerance_px))
+
+
 def find_ring(gray: np.ndarray, cfg: InspectionConfig) -> Ring | None:
     """The ring target nearest the image centre (§4.1's dispensed-dot branch), or None."""
     smooth = cv2.GaussianBlur(gray.astype(np.float64), (0, 0), cfg.smoothing_sigma_px)
@@ -292,8 +301,7 @@ def find_ring(gray: np.ndarray, cfg: InspectionConfig) -> Ring | None:
     for c in contours:
         if cv2.arcLength(c, True) < cfg.ring_min_length_px:
             continue
-        hull = cv2.convexHull(c)
-        if cv2.contourArea(hull) <= 0 or cv2.contourArea(c) / cv2.contourArea(hull) < cfg.ring_min_convexity:
+        if convexity(c) < cfg.ring_min_convexity:
             continue
         p = c[:, 0, :].astype(float)
         circles.append(fit_circle(p[:, 0], p[:, 1]))

@@ -80,14 +80,15 @@ def test_config_file_overrides_and_errors(tmp_path):
     assert load_config(good).nsd_r_max == 0.08 and load_config(good).cov_i_max == load_config().cov_i_max
     bad = tmp_path / "bad.toml"
     bad.write_text("[inspection]\nnsd_max = 0.08\n")
-    with pytest.raises(ValueError, match="bad.toml.*nsd_max"):
+    with pytest.raises(ValueError, match=r"bad\.toml.*nsd_max"):
         load_config(bad)
 
 
 def test_capture_rows_record_unreadable_images(tmp_path, cfg):
     rng = np.random.default_rng(2)
     (tmp_path / "images").mkdir()
-    cv2.imwrite(str(tmp_path / "images" / "a.png"), render_scene(_scene([DotShape((0, 0), 0.4)]), CROP, Lighting(), rng))
+    image = render_scene(_scene([DotShape((0, 0), 0.4)]), CROP, Lighting(), rng)
+    cv2.imwrite(str(tmp_path / "images" / "a.png"), image)
     manifest = pd.DataFrame({"image_id": ["a", "b"], "path": ["images/a.png", "images/b.png"]})
     rows = inspect_capture(tmp_path, manifest, cfg)
     assert rows["qualified"].tolist() == [True, False]

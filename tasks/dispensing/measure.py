@@ -113,7 +113,7 @@ def dispense_rows(manifest: pd.DataFrame, inspected: pd.DataFrame, machine: Mach
     dot_mm = pixels_to_surface(machine, model, camera, imaging, dot_px, surface_z_mm)
     # the local scale for the diameter: a pixel step at the dot, on the surface
     step = pixels_to_surface(machine, model, camera, imaging, dot_px + np.array([1.0, 0.0]), surface_z_mm)
-    mm_per_px = np.linalg.norm(step - dot_mm, axis=1, surface_z_mm) * binning[:, 0]
+    mm_per_px = np.linalg.norm(step - dot_mm, axis=1) * binning[:, 0]
     out = df.drop(columns=["ring_u_px", "ring_v_px", "dot_u_px", "dot_v_px", "path"])
     out["ring_u_px"], out["ring_v_px"] = ring_px[:, 0], ring_px[:, 1]
     out["dot_u_px"], out["dot_v_px"] = dot_px[:, 0], dot_px[:, 1]

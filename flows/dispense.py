@@ -26,7 +26,6 @@ import pandas as pd
 from prefect import flow, get_run_logger
 
 import fivecal
-from flows.measure import measure_campaign
 from tasks.calibration_steps import compensate_task, identify_task
 from tasks.compensation import desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
@@ -91,11 +90,12 @@ def _fit_rows(rows: pd.DataFrame) -> pd.DataFrame:
 
 @flow(name="dispense-test")
 def dispense_test(campaign: str, results_root: str | None = None, reports_root: str = "reports",
-                  run: str | None = None, inspection_config: str | None = None, detector: str = "rrht",
+                  run: str | None = None, inspection_config: str | None = None,
                   workpiece: Workpiece = Workpiece()) -> dict[str, Any]:  # noqa: B008 (frozen)
     """The dispensing test of a calibrated campaign; returns a summary (tip offset ± u, capture
     states, tables, report; for simulated campaigns the true constant tool-frame error before and
-    after the tip fit)."""
+    after the tip fit). Reads the tables ``calibrate`` wrote (images, poses, camera_calibration, pige's
+    provenance) and re-uses its cached identification."""
     logger = get_run_logger()
     config = load_config(inspection_config)
     folder = Path(campaign).resolve()
@@ -107,7 +107,6 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     except (FileNotFoundError, OSError) as e:
         raise ValueError(f"campaign {campaign_id} has no calibration in the lake ({e}): run fivecal calibrate "
                          f"first") from None
-    measure_campaign(str(folder), results_root, detector)  # cached: calibrate ran it
     machine = nominal_machine(metadata)
     images, pose_table = read_table("images", root, campaign_id), read_table("poses", root, campaign_id)
     cameras = intrinsics_from_table(read_table("camera_calibration", root, campaign_id), metadata)

@@ -1,5 +1,7 @@
 """The §4.3 inspection and §4.1 centres on rendered dots, against the renderer's truth; bad inputs."""
 
+import re
+
 import cv2
 import numpy as np
 import pandas as pd
@@ -93,3 +95,20 @@ def test_capture_rows_record_unreadable_images(tmp_path, cfg):
     rows = inspect_capture(tmp_path, manifest, cfg)
     assert rows["qualified"].tolist() == [True, False]
     assert "images/b.png missing or unreadable" in rows["reason"][1]
+
+
+def test_inspect_command_prints_the_ring_and_its_dot(tmp_path):
+    from typer.testing import CliRunner
+
+    from fivecal.cli import app
+
+    rng = np.random.default_rng(4)
+    cv2.imwrite(str(tmp_path / "ring.png"), render_scene(_scene([DotShape((0.1, 0.0), 0.4)]), CROP, Lighting(), rng))
+    out = CliRunner().invoke(app, ["inspect", str(tmp_path / "ring.png")])
+    assert out.exit_code == 0, out.output
+    x, y = map(float, re.search(r"ring: centre \(([\d.]+), ([\d.]+)\)", out.output).groups())
+    assert abs(x - RING[0]) < 0.05 and abs(y - RING[1]) < 0.05
+    assert "polarity: bright; 1 dot(s)" in out.output
+    assert "qualified" in out.output.splitlines()[-1]
+    bad = CliRunner().invoke(app, ["inspect", str(tmp_path / "nothing.png")])
+    assert bad.exit_code == 2 and "not a readable image" in bad.output

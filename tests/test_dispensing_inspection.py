@@ -44,15 +44,16 @@ def test_good_dots_centre_diameter_and_nsd(cfg):
     assert abs(np.mean(nsd)) < 0.005
 
 
-@pytest.mark.parametrize("defect, reason", [("satellite", "2 dots in the ring"), ("void", "CoV_I"),
-                                            ("smear", "NSD_r"), ("missing", "no dot")])
-def test_each_defect_is_found(cfg, defect, reason):
+@pytest.mark.parametrize("defect, reasons", [("satellite", ("2 dots in the ring", "circularity")),
+                                             ("void", ("CoV_I",)), ("smear", ("NSD_r",)), ("missing", ("no dot",))])
+def test_each_defect_is_found(cfg, defect, reasons):
     rng = np.random.default_rng(11)
     dot = random_dot(rng, (0.02, -0.03), 0.8, defect)
     for contrast in (40.0, -40.0):
         gray = render_scene(_scene([] if defect == "missing" else [dot]), CROP, Lighting(contrast=contrast), rng)
         result = inspect_ring_image(gray, cfg)
-        assert not result.qualified and reason in result.reason
+        # a satellite close to its dot merges with it in the binary image: then its outline fails
+        assert not result.qualified and any(r in result.reason for r in reasons), result.reason
 
 
 def test_bad_inputs_say_what_is_wrong(cfg):

@@ -130,6 +130,8 @@ def write_dispensing_report(out_dir: Path, rows: pd.DataFrame, verification: pd.
           f"From {fit.dots} qualified dots of the compensated phase; dot residual rms {fit.residual_rms_um:.2f} µm. "
           "Added to the model's tool_offset effect (tip frame: x, y across the tool, z along it).", "",
           "| tip axis | offset (µm) | u (µm) |", "|---|---:|---:|", tip, "",
+          f"Fitted beside it, not folded in: a tool-axis error growing as sin A, {fit.tilt_um:+.2f} ± "
+          f"{fit.tilt_uncertainty_um:.2f} µm per unit sin A (docs/dispensing-test.md).", "",
           "## Dot offsets", "", "![dot offsets](figures/offsets.png)", "",
           "## Pass / defect counts", "", _table(counts_table(rows)), "",
           "## Dot features", "", "![features](figures/features.png)", ""]

@@ -38,7 +38,6 @@ def offsets_figure(rows: pd.DataFrame):
         ax.set_ylabel("δy (µm)", fontsize=7)
         ax.set_title(f"{phase}: dot − ring", fontsize=8)
         ax.legend(fontsize=6)
-    fig.tight_layout()
     return fig
 
 
@@ -53,7 +52,6 @@ def features_figure(rows: pd.DataFrame, config: dict):
         if limits.get(col) is not None:
             ax.axvline(limits[col], color="tab:red", ls="--")
         ax.set_title(col, fontsize=8)
-    fig.tight_layout()
     return fig
 
 

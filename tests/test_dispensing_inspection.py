@@ -113,3 +113,21 @@ def test_inspect_command_prints_the_ring_and_its_dot(tmp_path):
     assert "qualified" in out.output.splitlines()[-1]
     bad = CliRunner().invoke(app, ["inspect", str(tmp_path / "nothing.png")])
     assert bad.exit_code == 2 and "not a readable image" in bad.output
+
+
+def test_lab_request_round_trip_and_manifest_errors(tmp_path):
+    from tasks.dispensing.capture import PLAN_FILE, plan_rows, write_plan
+    from tasks.dispensing.measure import REQUIRED, load_capture_manifest
+
+    centres = np.array([[1.0, 2.0], [3.0, -4.0]])
+    commands = np.arange(10, dtype=float).reshape(2, 5)
+    rows = plan_rows("compensated", centres, commands, commands + 1)
+    assert list(rows["image_id"]) == ["compensated_ring000", "compensated_ring001"]
+    plan = write_plan(tmp_path / "cap", rows)
+    assert plan.name == PLAN_FILE
+    pd.read_csv(plan).to_csv(tmp_path / "cap" / "manifest.csv", index=False)  # the lab's manifest: full frames
+    manifest = load_capture_manifest(tmp_path / "cap")
+    assert set(REQUIRED) <= set(manifest.columns) and (manifest["roi_x0"] == 0).all()
+    pd.read_csv(plan).drop(columns=["image_C_deg"]).to_csv(tmp_path / "cap" / "manifest.csv", index=False)
+    with pytest.raises(ValueError, match=r"manifest\.csv.*image_C_deg"):
+        load_capture_manifest(tmp_path / "cap")

@@ -62,3 +62,24 @@ def correct_bias(ellipse_centres_px: np.ndarray, plate_xy_mm: np.ndarray, radius
         corrected = ellipse_centres_px - centre_bias(h, plate_xy_mm, radius_mm)
         h = fit_homography(plate_xy_mm, corrected)
     return corrected, h
+
+
+def correct_bias_local(ellipse_centres_px: np.ndarray, plate_xy_mm: np.ndarray, radius_mm: float,
+                       row_col: np.ndarray, iterations: int = 2) -> np.ndarray:
+    """Like :func:`correct_bias`, with one homography per dot fitted to it and its neighbours.
+
+    Under strong lens distortion (a fisheye) no single homography maps the plate into the image;
+    around each dot, the dots at most one row and one column away (4 to 9 of them) still fit one,
+    and the bias of that dot's ellipse centre is computed from it. ellipse_centres_px (N, 2) px,
+    plate_xy_mm (N, 2) mm, row_col (N, 2) plate row and column of each dot. Returns (N, 2) px.
+    """
+    near = np.all(np.abs(row_col[:, None, :] - row_col[None, :, :]) <= 1, axis=2)  # (N, N)
+    corrected = ellipse_centres_px.copy()
+    for _ in range(iterations):
+        new = ellipse_centres_px.copy()
+        for k in range(len(new)):
+            nb = near[k]
+            h = fit_homography(plate_xy_mm[nb], corrected[nb])
+            new[k] -= centre_bias(h, plate_xy_mm[k : k + 1], radius_mm)[0]
+        corrected = new
+    return corrected

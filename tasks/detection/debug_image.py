@@ -1,6 +1,6 @@
 """A picture of what the detector saw: candidates, the grid found, or why it was refused.
 
-:func:`draw_detection` returns a BGR copy of the image (shrunk so that its longer side is at most
+:func:`draw_detection` returns a BGR copy of the image (scaled so that its longer side is at most
 ``max_side_px``) with every coarse candidate circle (thin, orange), each found dot's ellipse centre
 and its (row, col) label (green), the grid's rows joined by lines (row 0 red, the others green:
 the labelling's orientation at a glance), and a banner with "ok" or the rejection reason.
@@ -34,11 +34,13 @@ def _wrap(text: str, width: int) -> list[str]:
 
 
 def draw_detection(image: np.ndarray, det: GridDetection, plate: DotPlate, max_side_px: int = 1600) -> np.ndarray:
-    """(H', W', 3) uint8 BGR drawing of ``det`` on ``image`` (grey (H, W) or BGR (H, W, 3))."""
+    """(H', W', 3) uint8 BGR drawing of ``det`` on ``image`` (grey (H, W) or BGR (H, W, 3)),
+    scaled so that its longer side is between 800 px (or ``max_side_px`` if smaller) and ``max_side_px``."""
     bgr = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
-    s = min(1.0, max_side_px / max(bgr.shape[:2]))
-    if s < 1.0:
-        bgr = cv2.resize(bgr, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+    side = max(bgr.shape[:2])
+    s = float(np.clip(side, min(800, max_side_px), max_side_px)) / side  # small images are enlarged to read
+    if s != 1.0:
+        bgr = cv2.resize(bgr, None, fx=s, fy=s, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
     h, w = bgr.shape[:2]
     lw = max(1, round(max(h, w) / 800))
 

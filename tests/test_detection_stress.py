@@ -97,3 +97,16 @@ def test_debug_image_shows_the_verdict_and_the_cli_writes_it(tmp_path):
                                       "--diameter-mm", "4", "--debug-image", str(out)])
     assert result.exit_code == 0, result.output
     assert cv2.imread(str(out)).shape[2] == 3
+
+
+def test_region_contours_alone_find_the_grid():
+    """The fallback candidates (tasks.detection.blobs) on their own: no Hough circle is accepted."""
+    from tasks.detection.framework import FrameworkParams, detect_rrht
+    from tasks.detection.rrht import RRHTParams
+
+    case = CASES["fisheye"]
+    image, truth = render_stress_case(case)
+    det = detect_rrht(image, _plate(case), params=FrameworkParams(rrht=RRHTParams(min_rim_ratio=2.0)))
+    assert det.ok, det.reason
+    err = _errors_up_to_symmetry(_plate(case), det.centres, truth)
+    assert np.median(err) < 0.3 and err.max() < 0.8

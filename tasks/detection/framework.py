@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tasks.detection.blobs import contour_candidates
 from tasks.detection.chaincode import filter_edges
 from tasks.detection.edges import canny_edges
 from tasks.detection.grid import order_grid
@@ -40,6 +41,7 @@ class FrameworkParams:
     coarse_width_px: int = 768  # without a scale hint: coarse image about this wide
     median_ksize: int = 3
     min_support: float = 0.5  # per-dot fraction of the rim that must give inlier points
+    contour_fallback: bool = True  # add region-contour candidates when the Hough circles give no grid
     min_fill_inside: float = 0.9  # a candidate's disc must look like a dot … (tasks.detection.verify)
     min_fill_outside: float = 0.85  # … on a clear ring of plate
     bias_iterations: int = 2
@@ -135,22 +137,50 @@ def coarse_search(image: np.ndarray, plate: DotPlate, factor: int, d_min: float,
     em = canny_edges(pre)
     edges, _ = filter_edges(em.edges, d_min / factor, d_max / factor)
     tm["edges"] = tm.get("edges", 0.0) + time.perf_counter() - t1
-    if not edges.any():
-        return CoarseAttempt(factor, CoarseCircles.empty(), None,
-                             "no edges that could be dot rims (blank, saturated or featureless image)")
-    circles = rrht_circles(em, edges, plate.dark_dots, d_min / factor / 2, d_max / factor / 2,
-                           p.rrht, seed=p.seed, timings=tm)
-    fill_in, fill_out = dot_fill(pre, circles.centres, circles.axes, circles.theta, plate.dark_dots)
-    circles = circles.subset((fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside))
-    if len(circles) < 4:
-        return CoarseAttempt(factor, circles, None, f"found {len(circles)} circular targets, not a "
-                                                    f"{plate.rows}x{plate.cols} dot grid")
-    t3 = time.perf_counter()
+    r_min, r_max = d_min / factor / 2, d_max / factor / 2
+    circles = CoarseCircles.empty()
+    if edges.any():
+        circles = rrht_circles(em, edges, plate.dark_dots, r_min, r_max, p.rrht, seed=p.seed, timings=tm)
     prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
-    order = order_grid(circles.centres, plate, sizes=2 * circles.axes[:, 0], image_shape=small.shape,
-                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
-    tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
-    return CoarseAttempt(factor, circles, order, order.reason)
+
+    def verified(c: CoarseCircles) -> CoarseCircles:
+        fill_in, fill_out = dot_fill(pre, c.centres, c.axes, c.theta, plate.dark_dots)
+        return c.subset((fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside))
+
+    def ordered(c: CoarseCircles) -> CoarseAttempt:
+        if len(c) < 4:
+            return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
+                                                  "dot grid")
+        t3 = time.perf_counter()
+        order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=small.shape,
+                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
+        tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
+        return CoarseAttempt(factor, c, order, order.reason)
+
+    circles = verified(circles)
+    attempt = ordered(circles)
+    if attempt.ok or not p.contour_fallback:
+        return attempt
+    t4 = time.perf_counter()
+    blobs = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
+    merged = merge_candidates(circles, blobs)
+    tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t4
+    if len(merged) == len(circles):
+        return attempt
+    retry = ordered(merged)
+    return retry if retry.ok or retry.score >= attempt.score else attempt
+
+
+def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> CoarseCircles:
+    """``first`` and the circles of ``more`` that are not within half a minor axis of one of them."""
+    if len(first) == 0 or len(more) == 0:
+        return more if len(first) == 0 else first
+    d = np.linalg.norm(more.centres[:, None, :] - first.centres[None, :, :], axis=2)
+    new = (d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])).all(axis=1)
+    add = more.subset(new)
+    return CoarseCircles(np.concatenate([first.centres, add.centres]), np.concatenate([first.axes, add.axes]),
+                         np.concatenate([first.theta, add.theta]), np.concatenate([first.votes, add.votes]),
+                         np.concatenate([first.rim_ratio, add.rim_ratio]))
 
 
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,

@@ -110,3 +110,22 @@ def test_region_contours_alone_find_the_grid():
     assert det.ok, det.reason
     err = _errors_up_to_symmetry(_plate(case), det.centres, truth)
     assert np.median(err) < 0.3 and err.max() < 0.8
+
+
+def test_local_homographies_match_opencv_on_exact_points():
+    from tasks.detection.perspective import correct_bias, correct_bias_local, fit_homography, local_homographies
+
+    rng = np.random.default_rng(3)
+    h = np.array([[40.0, 3.0, 300.0], [-2.0, 38.0, 250.0], [1e-3, -2e-3, 1.0]])
+    xy = np.stack(np.meshgrid(np.arange(4) * 6.0, np.arange(3) * 6.0), axis=-1).reshape(-1, 2)
+    uv = xy @ h[:, :2].T + h[:, 2]
+    uv = uv[:, :2] / uv[:, 2:]
+    member = rng.random((5, len(xy))) < 0.7
+    member[:, :4] = True
+    hs = local_homographies(xy, uv, member)
+    assert np.allclose(hs, h / h[2, 2], rtol=1e-6, atol=1e-9)
+    assert np.allclose(fit_homography(xy, uv), hs[0], rtol=1e-4, atol=1e-7)  # OpenCV is less exact
+    # without distortion, local and global bias corrections agree
+    rc = np.stack(np.meshgrid(np.arange(4), np.arange(3)), axis=-1).reshape(-1, 2)[:, ::-1]
+    glob, _ = correct_bias(uv, xy, 2.0)
+    assert np.abs(correct_bias_local(uv, xy, 2.0, rc) - glob).max() < 1e-4  # px

@@ -45,7 +45,8 @@ class FrameworkParams:
     min_fill_inside: float = 0.9  # a candidate's disc must look like a dot … (tasks.detection.verify)
     min_fill_outside: float = 0.85  # … on a clear ring of plate
     bias_iterations: int = 2
-    distorted_misfit_px: float = 0.3  # RMS misfit of the plate homography beyond which it is fitted locally
+    distorted_misfit_px: float = 0.15  # RMS misfit (px) of the plate homography, well above centre noise,
+    # beyond which lens distortion dominates and the bias is computed from local homographies
     seed: int = 0
     rrht: RRHTParams = field(default_factory=RRHTParams)
     subpixel: SubpixelParams = field(default_factory=SubpixelParams)

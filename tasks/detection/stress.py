@@ -186,6 +186,8 @@ STRESS_CASES: tuple[StressCase, ...] = (
                colour=True, jpeg=85, shadow=0.6, gradient=0.4, seed=1),
     StressCase("phone-12mp-light", 3024, 4032, 150.0, tilt_deg=20.0, spin_deg=-8.0, clutter=40, texture=True,
                colour=True, jpeg=85, dark_dots=False, seed=2),
+    StressCase("phone-20px", 3024, 4032, 20.0, tilt_deg=25.0, spin_deg=10.0, clutter=60, texture=True,
+               colour=True, jpeg=85, shadow=0.6, seed=11),
     StressCase("phone-400px", 3024, 4032, 400.0, tilt_deg=5.0, clutter=20, texture=True, colour=True, jpeg=85,
                seed=3),
     StressCase("fisheye", 320, 360, 30.0, focal_px=170.0, k1=-0.35, k2=0.1, offset=(0.15, 0.2), tilt_deg=25.0,

@@ -1,8 +1,19 @@
-"""The RRHT-based dot-grid detection framework (seed paper §4.1, adapted to dot grids).
+"""The RRHT-based dot-grid detection framework (seed paper §4.1, adapted to dot grids and photographs).
 
     image ─ downsample ─ median + gamma ─ Canny ─ chain-code filter ─ RRHT circles (coarse)
-          ─ grid ordering ─ sub-pixel ellipses in circular ROIs at full size (RANSAC + LSQ)
-          ─ homography + perspective-bias correction ─ GridDetection
+          ─ appearance test ─ grid ordering  (no grid: + region-contour candidates, order again)
+          ─ sub-pixel ellipses in circular ROIs at full size (RANSAC + LSQ, pixel edge fit)
+          ─ homography + perspective-bias correction (local homographies under lens distortion)
+          ─ GridDetection
+
+Without a scale hint the coarse search runs over bands of dot size until one yields the grid
+(:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
+1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 6 px up
+at full resolution. Candidates must look like a filled dot on a clear ring of plate
+(:mod:`tasks.detection.verify`); when the Hough circles give no grid, dark (light) regions
+against their local mean are added (:mod:`tasks.detection.blobs`). A view without exactly one
+complete rows × cols window is refused with the reason (:mod:`tasks.detection.grid`): a wrong
+labelling is worse than none.
 
 SYNOPSIS
 

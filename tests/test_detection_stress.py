@@ -129,3 +129,17 @@ def test_local_homographies_match_opencv_on_exact_points():
     rc = np.stack(np.meshgrid(np.arange(4), np.arange(3)), axis=-1).reshape(-1, 2)[:, ::-1]
     glob, _ = correct_bias(uv, xy, 2.0)
     assert np.abs(correct_bias_local(uv, xy, 2.0, rc) - glob).max() < 1e-4  # px
+
+
+def test_candidate_fit_far_off_the_image_is_no_rim():
+    """A candidate refitted to a centre far outside the coarse map (seen on tilt-50, seed 108) has no rim."""
+    from tasks.detection.edges import canny_edges, direction_codes
+    from tasks.detection.rrht import RRHTParams, fit_candidates
+
+    image, _ = render_stress_case(replace(CASES["tilt-50"], seed=108))
+    em = canny_edges(image)
+    dirs = direction_codes(em, em.edges)
+    centres = np.array([[-400.0, 50.0], [image.shape[1] / 2, image.shape[0] / 2]])
+    _, _, _, ratio = fit_candidates(dirs, centres, np.array([20.0, 20.0]), True, RRHTParams())
+    assert ratio[0] == 0.0
+    assert detect_grid(image, _plate(CASES["tilt-50"]), "rrht").ok

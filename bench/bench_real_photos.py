@@ -12,7 +12,8 @@ photograph's own pixels: its blur, noise, colour, lighting, perspective and lens
 
 There is no ground truth, so accuracy is measured as consistency: the RMS residual (px) of a
 homography fitted to the detector's rows × cols centres (over a block of a few dots a lens's
-distortion is nearly projective, so the residual is mostly centre noise), and the distance of
+distortion is nearly projective; with ``--camera`` the centres are undistorted first, and the
+residual is then mostly centre noise), and the distance of
 each detector's centres to rrht's. Detectors as in bench/bench_stress.py, in the same process on
 the same images. ``--out`` writes the cut-down images and rrht's debug drawings.
 """
@@ -72,10 +73,14 @@ def cut_down(grey: np.ndarray, rows: int, cols: int) -> tuple[np.ndarray, float]
     return cv2.inpaint(grey, mask, 5, cv2.INPAINT_TELEA), ratio
 
 
-def homography_rms(centres: np.ndarray, plate: DotPlate) -> float:
+def homography_rms(centres: np.ndarray, plate: DotPlate, camera: tuple[np.ndarray, np.ndarray] | None) -> float:
     """RMS residual (px) of a homography from the plate's dot positions to ``centres`` (rows*cols, 2),
-    given in the plate's row-major order."""
+    given in the plate's row-major order; with ``camera`` (K (3, 3), OpenCV distortion) the
+    centres are undistorted first (to pixels of the same K)."""
     xy = plate.dot_centres_mm()[:, :2]
+    if camera is not None:
+        k, dist = camera
+        centres = cv2.undistortPoints(centres.reshape(-1, 1, 2), k, dist, P=k).reshape(-1, 2)
     h = fit_homography(xy, centres)
     return float(np.sqrt(np.mean(np.sum((project(h, xy) - centres) ** 2, axis=1))))
 
@@ -87,7 +92,13 @@ def main() -> None:
     ap.add_argument("--cols", type=int, default=3)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--camera", nargs=2, type=Path, metavar=("K.txt", "DIST.txt"),
+                    help="the photos' intrinsic matrix and distortion (whitespace-separated text, OpenCV model): "
+                         "centres are undistorted before the homography fit")
     args = ap.parse_args()
+    camera = None
+    if args.camera:
+        camera = (np.loadtxt(args.camera[0]).reshape(3, 3), np.loadtxt(args.camera[1]).ravel())
     rows = []
     for path in args.photos:
         raw = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -123,10 +134,11 @@ def main() -> None:
                 line += f" | {d} --"
                 continue
             if d == "rrht":
-                row[d + "_rms"] = homography_rms(c, plate)
+                row[d + "_rms"] = homography_rms(c, plate, camera)
             else:  # their own order: put their centres in rrht's order (nearest), then fit
                 j = cKDTree(c).query(ref)[1] if ref is not None else np.arange(len(c))
-                row[d + "_rms"] = homography_rms(c[j], plate) if ref is not None and len(set(j)) == len(c) else None
+                one_to_one = ref is not None and len(set(j)) == len(c)
+                row[d + "_rms"] = homography_rms(c[j], plate, camera) if one_to_one else None
             row[d + "_to_rrht"] = (float(np.median(cKDTree(c).query(ref)[0])) if ref is not None else None)
             line += f" | {d} ok {row[d + '_ms']:5.0f} ms H-rms {row[d + '_rms'] or float('nan'):.3f}"
         rows.append(row)

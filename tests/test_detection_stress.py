@@ -20,6 +20,7 @@ from tasks.detection.stress import STRESS_CASES, errors_up_to_symmetry, render_s
 
 CASES = {c.name: c for c in STRESS_CASES}
 SMALL_PHONE = replace(CASES["phone-12mp"], name="phone-3mp", width=1512, height=2016, dot_px=75.0)
+GARDEN = replace(CASES["phone-garden"], name="phone-garden-3mp", width=1512, height=2016, dot_px=75.0)
 LARGE_DOTS = replace(CASES["phone-400px"], name="phone-200px", width=1512, height=2016, dot_px=200.0)
 
 
@@ -36,6 +37,7 @@ def _plate(case):
     (CASES["uneven-light"], 0.05, 0.1),
     (CASES["light-tilt"], 0.05, 0.1),
     (SMALL_PHONE, 0.05, 0.1),
+    (GARDEN, 0.05, 0.1),
     (LARGE_DOTS, 0.05, 0.1),
 ], ids=lambda v: getattr(v, "name", None))
 def test_stress_case_is_found_and_labelled(case, median_px, max_px):

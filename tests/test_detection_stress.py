@@ -131,3 +131,21 @@ def test_candidate_fit_far_off_the_image_is_no_rim():
     _, _, _, ratio = fit_candidates(dirs, centres, np.array([20.0, 20.0]), True, RRHTParams())
     assert ratio[0] == 0.0
     assert detect_grid(image, _plate(CASES["tilt-50"]), "rrht").ok
+
+
+def test_appearance_test_keeps_dots_and_drops_rings_and_shadow_edges():
+    """tasks.detection.verify: a filled dot passes, also with a shadow edge across it; the rim of
+    a ring (a letter O) and a disc on a patch of its own grey level do not."""
+    from tasks.detection.verify import dot_fill
+
+    img = np.full((200, 400), 210, np.uint8)
+    cv2.circle(img, (50, 100), 20, 30, -1, cv2.LINE_AA)  # a dot
+    cv2.circle(img, (150, 100), 20, 30, 4, cv2.LINE_AA)  # a ring
+    img[:, 230:300] = 120  # a grey patch …
+    cv2.circle(img, (265, 100), 20, 120, -1)  # … holding a disc of the same grey
+    cv2.circle(img, (350, 100), 20, 30, -1, cv2.LINE_AA)  # a dot …
+    img[:, 362:] = (img[:, 362:] * 0.5).astype(np.uint8)  # … a third of its surround in shadow
+    centres = np.array([[50.0, 100.0], [150.0, 100.0], [265.0, 100.0], [350.0, 100.0]])
+    fill_in, fill_out = dot_fill(img, centres, np.full((4, 2), 20.0), np.zeros(4), True)
+    passed = (fill_in >= 0.9) & (fill_out >= 0.85)
+    assert passed.tolist() == [True, False, False, True]

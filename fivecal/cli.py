@@ -233,6 +233,7 @@ def detect(
         typer.echo(json.dumps({"image": str(image), "ok": result.ok, "reason": result.reason,
                                "detector": result.detector, "elapsed_s": result.elapsed_s,
                                "rotation_deg": result.rotation_deg, "n_candidates": result.n_candidates,
+                               "orientation_ambiguous": result.orientation_ambiguous,
                                "pixel_origin": "centre of the top-left pixel",
                                "dots": dots}, indent=1))
     else:

@@ -85,6 +85,9 @@ def test_debug_image_shows_the_verdict_and_the_cli_writes_it(tmp_path):
                                       "--diameter-mm", "4", "--debug-image", str(out)])
     assert result.exit_code == 0, result.output
     assert cv2.imread(str(out)).shape[2] == 3
+    bad = CliRunner().invoke(app, ["detect", str(path), "--rows", "4", "--cols", "3", "--pitch-mm", "6",
+                                   "--diameter-mm", "4", "--debug-image", str(tmp_path / "no" / "debug.png")])
+    assert bad.exit_code == 2 and "debug.png" in bad.output
 
 
 def test_region_contours_alone_find_the_grid():

@@ -200,6 +200,8 @@ def detect(
     detector: DetectorOption = "rrht",
     rotation_deg: Annotated[float | None, typer.Option(help="expected in-plane rotation of the grid (deg)")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
+    debug_image: Annotated[Path | None, typer.Option(
+        help="write a PNG with the candidates, the grid found (row 0 red) or the reason it was refused")] = None,
 ) -> None:
     """Run a dot-grid detector on one image and print the ordered centres with their fit quality."""
     import json
@@ -226,15 +228,26 @@ def detect(
         row_pitch_mm = plate_a.row_pitch_mm if row_pitch_mm is None else row_pitch_mm
     plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots, row_pitch_mm=row_pitch_mm)
     result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
+    if debug_image is not None:
+        from tasks.detection.debug_image import draw_detection
+
+        if not cv2.imwrite(str(debug_image), draw_detection(grey, result, plate)):
+            typer.echo(f"error: {debug_image}: cannot write the debug image (folder missing or not an image "
+                       "extension OpenCV writes)", err=True)
+            raise typer.Exit(2)
     rc = plate.row_col()
-    dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "residual_rms_px": float(q),
-             "support_ratio": float(sr)}
-            for (r, c), (u, v), q, sr in zip(rc, result.centres, result.residual_rms_px, result.support_ratio,
-                                             strict=True)]
+    ellipse = result.ellipse_centres if result.ellipse_centres is not None else result.centres
+    dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "ellipse_u_px": float(eu),
+             "ellipse_v_px": float(ev), "residual_rms_px": float(q), "support_ratio": float(sr)}
+            for (r, c), (u, v), (eu, ev), q, sr in zip(rc, result.centres, ellipse, result.residual_rms_px,
+                                                       result.support_ratio, strict=True)]
     if json_output:
         typer.echo(json.dumps({"image": str(image), "ok": result.ok, "reason": result.reason,
                                "detector": result.detector, "elapsed_s": result.elapsed_s,
-                               "rotation_deg": result.rotation_deg, "dots": dots}, indent=1))
+                               "rotation_deg": result.rotation_deg, "n_candidates": result.n_candidates,
+                               "orientation_ambiguous": result.orientation_ambiguous,
+                               "pixel_origin": "centre of the top-left pixel",
+                               "dots": dots}, indent=1))
     else:
         typer.echo(f"{image}: {result.detector} {'ok' if result.ok else 'FAILED: ' + result.reason} "
                    f"({1e3 * result.elapsed_s:.0f} ms, rotation {result.rotation_deg:.2f} deg)")

@@ -42,6 +42,7 @@ from tasks.identification.measurements import assemble_measurements
 from tasks.ingest import load_campaign_metadata
 from tasks.machine import load_machine
 from tasks.results_lake import read_provenance, read_table, write_partition
+from tasks.simulate import read_truth
 from tasks.verification import modelled_errors, predicted_by, verification_table
 from tasks.verification_capture import is_simulated
 from tasks.vision import content_key, nominal_machine
@@ -111,8 +112,8 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     images, pose_table = read_table("images", root, campaign_id), read_table("poses", root, campaign_id)
     cameras = intrinsics_from_table(read_table("camera_calibration", root, campaign_id), metadata)
     simulated = is_simulated(folder)
-    truth_doc = json.loads((folder / "truth" / "truth.json").read_text()) if simulated else None
-    truth = ErrorModel.from_dict(truth_doc["error_model"]) if simulated else None
+    # the truth, with the user effect modules recorded beside it, read only to report against it
+    truth_doc, truth = read_truth(folder) if simulated else (None, None)
     base = ErrorModel(effects=[parse_effect(s) for s in calib_prov.get("effects", [])])
     orientation = calib_prov.get("orientation_objective", "full")
     measurements = assemble_measurements(images, pose_table)

@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pandas as pd
@@ -106,6 +108,19 @@ def atomic_write_parquet(path: Path, df: pd.DataFrame, metadata: dict | None = N
         meta[b"fivecal"] = json.dumps(metadata, default=str).encode()
         table = table.replace_schema_metadata(meta)
     _atomic_replace(path, lambda tmp: pq.write_table(table, tmp))
+
+
+@contextmanager
+def staged_folder(folder: Path) -> Iterator[Path]:
+    """Build ``folder`` whole or not at all: yields an empty staging folder beside it
+    (``<name>.partial``), which replaces ``folder`` when the block ends without an error."""
+    folder = Path(folder)
+    staging = folder.with_name(folder.name + ".partial")
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    yield staging
+    shutil.rmtree(folder, ignore_errors=True)
+    staging.rename(folder)
 
 
 def write_metadata(folder: Path, metadata: dict) -> None:

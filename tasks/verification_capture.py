@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tasks.campaign_io import COMMAND_COLUMNS, TRUTH_DIR, write_manifest, write_metadata
+from tasks.campaign_io import COMMAND_COLUMNS, TRUTH_DIR, staged_folder, write_manifest, write_metadata
 from tasks.campaign_plan import CampaignPlan, plan_campaign, temperature_at
 from tasks.capture_request import CAPTURE_GAP_IMAGES, capture_rows
 from tasks.machine import AXIS_ORDER, load_machine
@@ -69,19 +69,15 @@ def simulate_capture(campaign_folder: Path, out_folder: Path, image_ids, command
     plan = _capture_plan_of(campaign_folder, doc, image_ids, commands, camera, repeats)
     machine = load_machine("prototype")
     truth = simulate_truth(machine, errors, plan, {}, doc["size"])
-    staging = out_folder.with_name(out_folder.name + ".partial")
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
-    write_metadata(staging, {**metadata, "campaign_id": f"{metadata['campaign_id']}-{out_folder.name}"})
-    write_manifest(staging, manifest_from_plan(plan))
-    (staging / TRUTH_DIR).mkdir()
-    (staging / TRUTH_DIR / "truth.json").write_text(json.dumps({**doc, "note": "verification capture"}))
-    modules = campaign_folder / TRUTH_DIR / EFFECT_MODULES_DIR
-    if modules.is_dir():
-        shutil.copytree(modules, staging / TRUTH_DIR / EFFECT_MODULES_DIR)
-    write_images(staging, machine, plan, truth, range(len(plan)), int(doc["seed"]) * 7919 + 1)
-    shutil.rmtree(out_folder, ignore_errors=True)
-    staging.rename(out_folder)
+    with staged_folder(out_folder) as staging:
+        write_metadata(staging, {**metadata, "campaign_id": f"{metadata['campaign_id']}-{out_folder.name}"})
+        write_manifest(staging, manifest_from_plan(plan))
+        (staging / TRUTH_DIR).mkdir()
+        (staging / TRUTH_DIR / "truth.json").write_text(json.dumps({**doc, "note": "verification capture"}))
+        modules = campaign_folder / TRUTH_DIR / EFFECT_MODULES_DIR
+        if modules.is_dir():
+            shutil.copytree(modules, staging / TRUTH_DIR / EFFECT_MODULES_DIR)
+        write_images(staging, machine, plan, truth, range(len(plan)), int(doc["seed"]) * 7919 + 1)
     return out_folder
 
 

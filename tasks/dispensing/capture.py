@@ -20,8 +20,6 @@ for a 0.8 mm dot).
 
 from __future__ import annotations
 
-import json
-import shutil
 from pathlib import Path
 
 import cv2
@@ -29,13 +27,14 @@ import numpy as np
 import pandas as pd
 
 from tasks.camera_model import project_points
-from tasks.campaign_io import TRUTH_DIR, atomic_write_text
+from tasks.campaign_io import TRUTH_DIR, atomic_write_text, staged_folder
 from tasks.dispensing.dot_render import Lighting, RingScene, draw_defect, random_dot, render_scene
 from tasks.dispensing.tip import landing_points
 from tasks.dispensing.workpiece import Workpiece, commands_frame, ring_ids
 from tasks.error_model import ErrorModel
 from tasks.kinematics import forward
 from tasks.machine import Machine, load_machine
+from tasks.simulate import read_truth
 
 PLAN_FILE = "dispense_plan.csv"
 ROI_PX = 128
@@ -73,38 +72,34 @@ def simulate_dispense_capture(campaign_folder: Path, out_folder: Path, rows: pd.
     """Dispense at the rows' commands on the true machine, image every ring with camera 1 and write
     the capture folder (replaced whole). Returns it."""
     campaign_folder, out_folder = Path(campaign_folder), Path(out_folder)
-    doc = json.loads((campaign_folder / TRUTH_DIR / "truth.json").read_text())
+    truth = read_truth(campaign_folder)[1]
     machine = load_machine("prototype")
-    truth = ErrorModel.from_dict(doc["error_model"])
     dispense = rows[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy(float)
     imaging = rows[["image_X_mm", "image_Y_mm", "image_Z_mm", "image_A_deg", "image_C_deg"]].to_numpy(float)
     centres = rows[["ring_x_mm", "ring_y_mm"]].to_numpy(float)
     offsets = landing_points(machine, truth, dispense) - centres
-    staging = out_folder.with_name(out_folder.name + ".partial")
-    shutil.rmtree(staging, ignore_errors=True)
-    (staging / "images" / CAMERA).mkdir(parents=True)
-    (staging / TRUTH_DIR).mkdir()
-    rng = np.random.default_rng([seed, 3131, len(rows)])
-    lighting = lighting_of(seed)
-    truth_rows, roi = [], []
-    for i, row in enumerate(rows.itertuples(index=False)):
-        ring_px, jac = ring_projection(machine, truth, imaging[i], centres[i], workpiece.surface_z_mm)
-        x0, y0 = int(np.rint(ring_px[0])) - ROI_PX // 2, int(np.rint(ring_px[1])) - ROI_PX // 2
-        defect = draw_defect(rng, DEFECT_RATE)
-        dot = random_dot(rng, offsets[i], workpiece.dot_diameter_mm, defect)
-        scene = RingScene((ring_px[0] - x0, ring_px[1] - y0), jac, workpiece.ring_inner_mm, workpiece.ring_outer_mm,
-                          () if defect == "missing" else (dot,))
-        image = render_scene(scene, (ROI_PX, ROI_PX), lighting, rng)
-        cv2.imwrite(str(staging / row.path), image)
-        roi.append((x0, y0))
-        truth_rows.append({"image_id": row.image_id, "truth_dx_um": offsets[i, 0] * 1e3,
-                           "truth_dy_um": offsets[i, 1] * 1e3, "truth_diameter_mm": dot.equivalent_diameter_mm(),
-                           "truth_nsd_r": dot.nsd_r(), "truth_defect": defect or "none"})
-    manifest = rows.assign(roi_x0=[r[0] for r in roi], roi_y0=[r[1] for r in roi], binning=1)
-    pd.DataFrame(truth_rows).to_csv(staging / TRUTH_DIR / "dots.csv", index=False)
-    manifest.to_csv(staging / "manifest.csv", index=False)
-    shutil.rmtree(out_folder, ignore_errors=True)
-    staging.rename(out_folder)
+    with staged_folder(out_folder) as staging:
+        (staging / "images" / CAMERA).mkdir(parents=True)
+        (staging / TRUTH_DIR).mkdir()
+        rng = np.random.default_rng([seed, 3131, len(rows)])
+        lighting = lighting_of(seed)
+        truth_rows, roi = [], []
+        for i, row in enumerate(rows.itertuples(index=False)):
+            ring_px, jac = ring_projection(machine, truth, imaging[i], centres[i], workpiece.surface_z_mm)
+            x0, y0 = int(np.rint(ring_px[0])) - ROI_PX // 2, int(np.rint(ring_px[1])) - ROI_PX // 2
+            defect = draw_defect(rng, DEFECT_RATE)
+            dot = random_dot(rng, offsets[i], workpiece.dot_diameter_mm, defect)
+            scene = RingScene((ring_px[0] - x0, ring_px[1] - y0), jac, workpiece.ring_inner_mm, workpiece.ring_outer_mm,
+                              () if defect == "missing" else (dot,))
+            image = render_scene(scene, (ROI_PX, ROI_PX), lighting, rng)
+            cv2.imwrite(str(staging / row.path), image)
+            roi.append((x0, y0))
+            truth_rows.append({"image_id": row.image_id, "truth_dx_um": offsets[i, 0] * 1e3,
+                               "truth_dy_um": offsets[i, 1] * 1e3, "truth_diameter_mm": dot.equivalent_diameter_mm(),
+                               "truth_nsd_r": dot.nsd_r(), "truth_defect": defect or "none"})
+        manifest = rows.assign(roi_x0=[r[0] for r in roi], roi_y0=[r[1] for r in roi], binning=1)
+        pd.DataFrame(truth_rows).to_csv(staging / TRUTH_DIR / "dots.csv", index=False)
+        manifest.to_csv(staging / "manifest.csv", index=False)
     return out_folder
 
 

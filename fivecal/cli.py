@@ -49,11 +49,20 @@ def simulate(
     overwrite: Annotated[bool, typer.Option(help="replace an existing campaign folder")] = False,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
+    effect_module: Annotated[list[str] | None, typer.Option(
+        help="import a module that registers user-written effect families (repeatable); its source is "
+             "recorded with the truth, the analysis does not see it")] = None,
 ) -> None:
     """Simulate a measurement campaign of the prototype and write its folder."""
-    from tasks.effects import parse_effect
+    from tasks.effects import load_effect_modules, module_source_file, parse_effect
 
     _check_dask(dask_address, dask_workers)
+    try:
+        load_effect_modules(effect_module or [], entry_point_group=None)
+        for module in effect_module or []:
+            module_source_file(module)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--effect-module") from None
 
     if size not in ("full", "small"):
         raise typer.BadParameter("size must be 'full' or 'small'", param_hint="--size")
@@ -69,7 +78,7 @@ def simulate(
 
     flow = simulate_campaign.with_options(task_runner=image_task_runner(dask_address, dask_workers))
     path = flow(str(out), seed=seed, size=size, effects=list(effect or []), small_plan=plan == "small",
-                overwrite=overwrite)
+                overwrite=overwrite, effect_modules=list(effect_module or []))
     typer.echo(f"campaign written to {path}")
 
 
@@ -333,26 +342,45 @@ def truth_stats(
     effect: Annotated[list[str] | None, typer.Option(help="add an effect to the true machine (repeatable)")] = None,
     poses: Annotated[int, typer.Option(help="number of validation poses")] = 100,
     seed: Annotated[int, typer.Option(help="seed of the validation poses")] = 0,
+    effect_module: Annotated[list[str] | None, typer.Option(
+        help="import a module that registers user-written effect families (repeatable)")] = None,
 ) -> None:
-    """Print the true tip errors over validation poses and the PDGE magnitudes, beside the seed's."""
-    import numpy as np
+    """Print the true tip errors over validation poses and the PDGE magnitudes, beside the seed's.
 
-    from tasks.campaign_plan import CampaignPlan, five_axis_poses
-    from tasks.effects import parse_effect
+    Each validation pose is taken in the context it has in the seed's campaign plan (approach per
+    axis, time since the start, temperature), so effects that depend on them count."""
+    from tasks.effects import load_effect_modules, parse_effect
     from tasks.machine import load_machine
     from tasks.prototype_errors import load_prototype_errors
-    from tasks.truth_stats import SEED_BEFORE, pdge_magnitudes, summarise, sweep_positions, tip_errors
+    from tasks.truth_stats import (
+        SEED_BEFORE,
+        effects_change,
+        pdge_magnitudes,
+        summarise,
+        sweep_positions,
+        tip_errors,
+        validation_poses,
+    )
 
     machine = load_machine("prototype")
     errors = load_prototype_errors()
-    errors.effects = [parse_effect(s) for s in effect or []]
-    cmds = five_axis_poses(machine, poses, CampaignPlan(), np.random.default_rng([seed, 3]))
-    err = tip_errors(machine, cmds, errors)
+    try:
+        load_effect_modules(effect_module or [], entry_point_group=None)
+        errors.effects = [parse_effect(s) for s in effect or []]
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--effect / --effect-module") from None
+    cmds, context = validation_poses(machine, poses, seed)
+    err = tip_errors(machine, cmds, errors, context)
     stats = summarise(err)
     typer.echo(f"Tip error over {poses} validation poses (true machine vs nominal model, before compensation)")
     typer.echo(f"{'statistic':<26}{'fivecal':>10}{'seed':>10}{'ratio':>8}")
     for k, v in stats.items():
         typer.echo(f"{k:<26}{v:>10.2f}{SEED_BEFORE[k]:>10.2f}{v / SEED_BEFORE[k]:>8.2f}")
+    if errors.effects:
+        change = effects_change(machine, cmds, errors, context)
+        typer.echo(f"\nThe effects move the tip by {change['position_um'].mean():.2f} µm on average "
+                   f"(max {change['position_um'].max():.2f}) and turn it by {change['orientation_arcsec'].mean():.2f}″ "
+                   f"(max {change['orientation_arcsec'].max():.2f}), each pose in its campaign context")
     comp = err[["dx_um", "dy_um", "dz_um", "rx_arcsec", "ry_arcsec", "rz_arcsec"]].agg(["mean", "std"]).T
     typer.echo("\nComponents (mean, std):")
     for name, row in comp.iterrows():

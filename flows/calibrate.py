@@ -8,7 +8,6 @@ campaign re-uses all of them.
 
 from __future__ import annotations
 
-import json
 import os
 from datetime import UTC, datetime
 from pathlib import Path
@@ -38,32 +37,34 @@ from tasks.capture_request import (
     check_capture_commands,
     check_repeats,
     has_capture,
+    planned_capture_context,
     repeats_key,
     write_capture_request,
 )
 from tasks.compensation import check_objective, compensation_table, desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
+from tasks.diagnosis.verdict import residual_follows_sentence
 from tasks.effects import load_effect_modules, parse_effect
 from tasks.error_model import ErrorModel
-from tasks.identification.measurements import assemble_measurements
+from tasks.identification.measurements import assemble_measurements, capture_context
 from tasks.identification.pige_identification import null_space_sentences
 from tasks.identification.uncertainty import expected_tip_errors
 from tasks.ingest import load_campaign_metadata
 from tasks.machine import CALIBRATION_STAGE
-from tasks.model_ladder import append_step, ladder_step
+from tasks.model_ladder import append_step, compensated_tip_errors, ladder_step
 from tasks.report import ReportData
 from tasks.report.residual_figures import residual_report
-from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
+from tasks.residuals import dot_residual_table, plates_of, pose_residual_table, trend_summary
 from tasks.results_lake import partition_path, read_table, write_partitions
+from tasks.simulate import read_truth
 from tasks.verification import (
     capture_errors,
-    modelled_errors,
     predicted_by,
     vbm_errors,
     verification_table,
     with_phase_columns,
 )
-from tasks.verification_capture import is_simulated
+from tasks.verification_capture import is_simulated, true_campaign_errors, true_capture_errors
 from tasks.vision import campaign_plates, content_key, nominal_machine, with_detection_inputs
 from tasks.vision_steps import detect_chunk, poses
 
@@ -134,9 +135,9 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     calibration = read_table("camera_calibration", root, campaign_id)
     cameras = intrinsics_from_table(calibration, metadata)
     simulated = is_simulated(folder)
-    # the truth is read only to express it in the fit's gauge and to report errors against it
-    truth = (ErrorModel.from_dict(json.loads((folder / "truth" / "truth.json").read_text())["error_model"])
-             if simulated else None)
+    # the truth is read only to express it in the fit's gauge and to report errors against it; its
+    # user effects come from the modules recorded with it, which the analysis below does not see
+    truth = read_truth(folder)[1] if simulated else None
 
     measurements = assemble_measurements(images, pose_table)
     logger.info(f"identifying: {len(measurements)} poses ({(measurements.table.stage == 'pige').sum()} five-axis)")
@@ -155,7 +156,11 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     validation = measurements.stage("validation", camera=VALIDATION_CAMERA)
     ids = validation.table.image_id.tolist()
     commands = validation.commands
-    comp = compensate_task.submit(machine, result.model, commands, orientation)
+    # the context each compensated move will have in the capture: approach, time, temperature
+    campaign_context = capture_context(images)
+    planned = planned_capture_context(commands, campaign_context["time_s"].to_numpy(float),
+                                      campaign_context["temperature_c"].to_numpy(float), verification_repeats)
+    comp = compensate_task.submit(machine, result.model, commands, orientation, planned)
     compensation = comp.result()
     compensated = compensation.commands
     desired = desired_tip_poses(machine, commands)
@@ -172,8 +177,9 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
         cap = capture_task.submit(folder, capture_folder, ids, compensated, verification_repeats)
         capture_folder = Path(cap.result())
         cached["capture"] = cap.state.name == "Cached"
-        parts[("before", "truth")] = (ids, modelled_errors(machine, truth, desired, commands))
-        parts[("after", "truth")] = (ids, modelled_errors(machine, truth, desired, compensated))
+        parts[("before", "truth")] = (ids, true_campaign_errors(folder, ids, commands, desired))
+        parts[("after", "truth")] = (ids, true_capture_errors(folder, ids, compensated, desired, VALIDATION_CAMERA,
+                                                              verification_repeats))
     if has_capture(capture_folder):
         check_capture_commands(capture_folder, requested)
         after = _measure_capture(capture_folder, results_root, cameras, detector)
@@ -193,7 +199,9 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     parts = with_phase_columns(parts, ids, phase_commands,
                                lambda c: expected_tip_errors(machine, result.model, propagated, c), "model_uncertainty")
     # what the identified model itself predicts, to set beside what was measured
-    parts = with_phase_columns(parts, ids, phase_commands, predicted_by(machine, result.model, desired),
+    parts = with_phase_columns(parts, ids, phase_commands,
+                               predicted_by(machine, result.model, desired,
+                                            [(commands, validation.context), (compensated, planned)]),
                                "model_predicted")
     verification = verification_table(parts)
     formulations = formulations_task.submit(machine, result.model,
@@ -224,12 +232,16 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     cached["diagnose"] = diag_future.state.name == "Cached"
     pending["diagnosis"] = diagnosis.table
     tables = {name: str(path) for name, path in write_partitions(pending, campaign_id, provenance, root).items()}
-    ladder = append_step(campaign_id, ladder_step(machine, result.model, fit, measurements, cv_rms=cv_rms),
+    ladder = append_step(campaign_id, ladder_step(machine, result.model, fit, measurements, cv_rms=cv_rms,
+                                                  tip=compensated_tip_errors(verification)),
                          provenance, root)
     tables["model_ladder"] = str(partition_path("model_ladder", campaign_id, root))
     sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras)
-    sections = [("What the model lacks (diagnosis)", "\n\n".join(diagnosis.sentences)), *sections]
-    logger.info("diagnosis:\n" + "\n".join(diagnosis.sentences))
+    sentences = list(diagnosis.sentences)
+    if diagnosis.best is None:  # no family explains it: say what the residual follows
+        sentences += [s for s in [residual_follows_sentence(trend_summary(residuals), VALIDATION_CAMERA)] if s]
+    sections = [("What the model lacks (diagnosis)", "\n\n".join(sentences)), *sections]
+    logger.info("diagnosis:\n" + "\n".join(sentences))
 
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out_dir = Path(reports_root) / campaign_id / run
@@ -246,7 +258,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     logger.info(f"verification means:\n{summary_rows.round(2).to_string()}")
     return {"campaign_id": campaign_id, "report": str(paths["html"]), "markdown": str(paths["markdown"]),
             "cv_rms": cv_rms, "effects": [e.spec() for e in result.model.effects],
-            "diagnosis": diagnosis.sentences, "diagnosis_best": diagnosis.best,
+            "diagnosis": sentences, "diagnosis_best": diagnosis.best,
             "tables": tables, "cached": cached, "sigma2": fit.sigma2,
             "capture": str(capture_folder), "capture_state": capture_state,
             "verification_means": summary_rows.reset_index().to_dict("records")}  # unrounded: no double rounding

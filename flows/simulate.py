@@ -11,6 +11,7 @@ import numpy as np
 from prefect import flow, get_run_logger
 
 from flows.runners import image_task_runner
+from tasks.effects import load_effect_modules
 from tasks.simulation_steps import plan_and_write_truth, render_images
 
 BATCH_SIZE = 25
@@ -18,13 +19,19 @@ BATCH_SIZE = 25
 
 @flow(name="simulate-campaign", task_runner=image_task_runner())
 def simulate_campaign(out: str, seed: int = 0, size: str = "full", effects: list[str] | None = None,
-                      small_plan: bool = False, overwrite: bool = False) -> str:
+                      small_plan: bool = False, overwrite: bool = False,
+                      effect_modules: list[str] | None = None) -> str:
     """Write a simulated campaign to ``out``. The folder appears only when complete.
+
+    effect_modules: user modules defining families of ``effects`` (dotted paths or ``.py`` files);
+    they are imported here and their source is recorded with the truth, so that the simulator's side
+    of later runs (the verification capture) has them and the analysis side does not.
 
     The rendering batches go to the flow's task runner (``simulate_campaign.with_options(task_runner=
     flows.runners.image_task_runner(...))`` for Dask); its workers must see ``out``'s parent folder.
     """
     logger = get_run_logger()
+    load_effect_modules(effect_modules or [], entry_point_group=None)
     out_path = Path(out).resolve()
     if out_path.exists() and not overwrite:
         raise FileExistsError(f"{out_path} already exists; choose another folder or pass --overwrite")
@@ -32,7 +39,7 @@ def simulate_campaign(out: str, seed: int = 0, size: str = "full", effects: list
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     machine, poses, truth = plan_and_write_truth(staging, out_path.name, seed, size, list(effects or []),
-                                                 small_plan)
+                                                 small_plan, list(effect_modules or []))
     batches = np.array_split(np.arange(len(poses)), max(1, int(np.ceil(len(poses) / BATCH_SIZE))))
     logger.info(f"rendering {len(poses)} images ({size}) in {len(batches)} batches")
     futures = [render_images.submit(staging, machine, poses, truth, rows, seed) for rows in batches]

@@ -17,6 +17,7 @@ from prefect.cache_policies import NO_CACHE
 
 from tasks.capture_request import repeats_key
 from tasks.compensation import Compensation, compensate
+from tasks.context import PoseContext
 from tasks.diagnosis.diagnose import DIAGNOSIS_CODE_VERSION
 from tasks.effects import EFFECTS
 from tasks.error_model import ErrorModel
@@ -80,14 +81,22 @@ def propagate_task(machine: Machine, measurements: Measurements, result: Calibra
     return propagate_uncertainty(machine, result, measurements, sens, covs, draws=draws)
 
 
+def _context_key(context: PoseContext | None):
+    """A context's content for a cache key; nothing for none, so that keys without one stay as they were."""
+    return [] if context is None else [np.column_stack([context.approach, context.time_s,
+                                                        context.temperature_c]).round(9).tolist()]
+
+
 @task(name="compensate", persist_result=True,
       cache_key_fn=lambda c, p: _key("compensate", p["model"].to_dict(), p["commands"].tolist(),
-                                     p["machine"].source, p.get("orientation", "full")))
-def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full"
-                    ) -> Compensation:
+                                     p["machine"].source, p.get("orientation", "full"),
+                                     *_context_key(p.get("context"))))
+def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full",
+                    context: PoseContext | None = None) -> Compensation:
     """Compensated commands of the validation poses by inverse kinematics of the identified model,
-    under the orientation objective ``orientation`` (tasks.compensation)."""
-    return compensate(machine, model, commands, orientation)
+    under the orientation objective ``orientation``, in the ``context`` the moves will have
+    (tasks.compensation)."""
+    return compensate(machine, model, commands, orientation, context)
 
 
 @task(name="simulate-verification-capture", persist_result=True,

@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 
 from tasks.campaign_io import COMMAND_COLUMNS, MANIFEST_FILE, METADATA_FILE, atomic_write_text, image_relpath
+from tasks.context import PoseContext, approach_directions
 from tasks.ingest import CampaignError, load_manifest
 from tasks.verification import capture_image_id
 
@@ -62,6 +63,41 @@ def capture_rows(image_ids, commands: np.ndarray, camera: str, repeats: int = 1)
     for col, values in zip(COMMAND_COLUMNS, np.tile(commands, (repeats, 1)).T, strict=True):
         rows[col] = values
     return rows
+
+
+CAPTURE_GAP_IMAGES = 60
+"""The capture starts this many image intervals after the campaign's last image (the simulator's
+schedule, :func:`tasks.verification_capture.simulate_capture`)."""
+
+
+def capture_times(campaign_times_s: np.ndarray, n_rows: int) -> np.ndarray:
+    """When the capture's ``n_rows`` images are planned (s since the campaign's first image, (n_rows,)):
+    one image interval (the median of the campaign's) apart, from :data:`CAPTURE_GAP_IMAGES` + 1
+    intervals after the campaign's last image."""
+    t = np.sort(np.asarray(campaign_times_s, dtype=float))
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    return t[-1] + (CAPTURE_GAP_IMAGES + 1 + np.arange(n_rows)) * dt
+
+
+def planned_capture_context(commands: np.ndarray, campaign_time_s: np.ndarray, campaign_temperature_c: np.ndarray,
+                            repeats: int = 1) -> PoseContext:
+    """The context each of the N poses at ``commands`` (N, 5; mm, deg) will have in the capture of
+    :func:`capture_rows`, for compensating them (analysis side, from the campaign's own record):
+
+    - approach: the direction from which each axis arrives when the capture drives through its
+      first pass from home (the order of the rows), as a controller's reversal compensation takes it;
+    - time_s: the planned times (:func:`capture_times` after the campaign's), averaged over a pose's
+      ``repeats`` (the VBM averages its images);
+    - temperature_c: the campaign's last recorded temperature, held (a temperature the capture
+      will only measure cannot be known before it).
+
+    campaign_time_s, campaign_temperature_c: (M,) s since the first image and °C of every image of
+    the campaign (:func:`tasks.identification.measurements.capture_context`). Returns N rows."""
+    commands = np.asarray(commands, dtype=float)
+    n, repeats = len(commands), check_repeats(repeats)
+    times = capture_times(campaign_time_s, n * repeats).reshape(repeats, n).mean(axis=0)
+    last = float(np.asarray(campaign_temperature_c, dtype=float)[np.argmax(campaign_time_s)])
+    return PoseContext(approach_directions(commands), times, np.full(n, last))
 
 
 def write_capture_request(campaign_folder: Path, out_folder: Path, rows: pd.DataFrame) -> Path:

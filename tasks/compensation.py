@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from tasks.context import PoseContext
 from tasks.error_model import ErrorModel
 from tasks.inverse_kinematics import inverse
 from tasks.kinematics import forward
@@ -68,17 +69,24 @@ def desired_tip_poses(machine: Machine, commands: np.ndarray) -> np.ndarray:
     return forward(machine, commands).tool_in_workpiece()
 
 
-def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full") -> Compensation:
+def compensate(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full",
+               context: PoseContext | None = None) -> Compensation:
     """Compensated commands (mm, deg) reaching the nominal tip poses of ``commands`` (N, 5) on
-    ``model``, under the orientation objective ``orientation`` (see the module docstring)."""
+    ``model``, under the orientation objective ``orientation`` (see the module docstring).
+
+    context: the context the compensated moves will have (approach direction per axis, time since
+    the campaign's start, temperature; :func:`tasks.capture_request.planned_capture_context`): the
+    model's effects that depend on it (backlash, thermal drift, a user effect reading it) are
+    compensated as they will be then. None: neutral (approach 0, time 0, 20 °C), i.e. those
+    effects are left uncompensated."""
     check_objective(orientation)
     desired = desired_tip_poses(machine, commands)
     position, direction = desired[:, :3, 3], desired[:, :3, 2]
-    full = inverse(machine, position, direction, model, initial=commands, spin_weight=SPIN_WEIGHT,
+    full = inverse(machine, position, direction, model, context=context, initial=commands, spin_weight=SPIN_WEIGHT,
                    tool_rotation=desired[:, :3, :3], direction_weight=ORIENTATION_WEIGHT_MM)
     if orientation == "full":
         return Compensation(full, ["full"] * len(full))
-    tool, residual = inverse(machine, position, direction, model, initial=full,
+    tool, residual = inverse(machine, position, direction, model, context=context, initial=full,
                              direction_weight=ORIENTATION_WEIGHT_MM, return_residual=True)
     strokes = machine.strokes_command()
     inside = np.all((tool >= strokes[:, 0]) & (tool <= strokes[:, 1]), axis=1)

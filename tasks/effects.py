@@ -16,6 +16,7 @@ lists and injects like a built-in one (see docs/effects.md).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
@@ -132,18 +133,22 @@ def register(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
-def parse_effect(spec: str) -> Effect:
-    """Parse ``family:key=value,...`` into an :class:`Effect`; errors name the bad part."""
+def parse_effect(spec: str, families: dict[str, type[Effect]] | None = None) -> Effect:
+    """Parse ``family:key=value,...`` into an :class:`Effect`; errors name the bad part.
+
+    families: extra families known to this parse only, beside the catalogue (e.g. the simulator's
+    recorded user modules, :func:`private_families`); they win over a catalogue family of the same name."""
     family, _, rest = str(spec).strip().partition(":")
-    if family not in EFFECTS:
-        raise ValueError(f"unknown effect family {family!r} in {spec!r}; known: {sorted(EFFECTS)}")
+    known = {**EFFECTS, **(families or {})}
+    if family not in known:
+        raise ValueError(f"unknown effect family {family!r} in {spec!r}; known: {sorted(known)}")
     values = {}
     for item in filter(None, (s.strip() for s in rest.split(","))):
         key, eq, value = item.partition("=")
         if not eq:
             raise ValueError(f"effect spec {spec!r}: {item!r} is not key=value")
         values[key.strip()] = value.strip()
-    return EFFECTS[family](**values)
+    return known[family](**values)
 
 
 def _along_axis(machine: Machine, axis: str, value: np.ndarray) -> np.ndarray:
@@ -369,7 +374,6 @@ def load_effect_modules(modules, entry_point_group: str | None = ENTRY_POINT_GRO
     import importlib.util
     import sys
     from importlib.metadata import entry_points
-    from pathlib import Path
 
     for name in modules:
         name = str(name)
@@ -391,3 +395,42 @@ def load_effect_modules(modules, entry_point_group: str | None = ENTRY_POINT_GRO
         for ep in entry_points(group=entry_point_group):
             ep.load()
     return sorted(EFFECTS)
+
+
+def module_source_file(module: str) -> Path:
+    """The ``.py`` file of an effect module given as :func:`load_effect_modules` takes it (a ``.py``
+    path or a dotted path, imported to find its file); ValueError naming it when it has none."""
+    import importlib
+
+    if str(module).endswith(".py"):
+        path = Path(module)
+    else:
+        try:
+            path = Path(getattr(importlib.import_module(str(module)), "__file__", "") or "")
+        except ImportError as e:
+            raise ValueError(f"effect module {module!r} could not be imported: {e}") from None
+    if path.suffix != ".py" or not path.is_file():
+        raise ValueError(f"effect module {module!r}: no Python source file to record ({path})")
+    return path
+
+
+def private_families(paths) -> dict[str, type[Effect]]:
+    """The effect families that the ``.py`` files ``paths`` register, without adding them to the
+    catalogue: each file is executed afresh and :data:`EFFECTS` is restored afterwards, so that
+    code which lists the catalogue (the diagnosis' candidates) never sees them. For the simulator's
+    side only: a campaign's truth can hold a family the analysis must not know (a hidden effect)."""
+    import importlib.util
+
+    saved = dict(EFFECTS)
+    found: dict[str, type[Effect]] = {}
+    try:
+        for path in map(Path, paths):
+            spec = importlib.util.spec_from_file_location(f"fivecal_truth_effects_{path.stem}", path)
+            if spec is None or not path.is_file():
+                raise ValueError(f"effect module {path}: no such file")
+            spec.loader.exec_module(importlib.util.module_from_spec(spec))
+            found.update({k: v for k, v in EFFECTS.items() if saved.get(k) is not v})
+    finally:
+        EFFECTS.clear()
+        EFFECTS.update(saved)
+    return found

@@ -250,13 +250,15 @@ class ErrorModel:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> ErrorModel:
+    def from_dict(cls, d: dict, families: dict | None = None) -> ErrorModel:
+        """The model of :meth:`to_dict`; families: effect families beyond the catalogue
+        (:func:`tasks.effects.parse_effect`)."""
         from tasks.effects import parse_effect
 
         return cls(
             pige={n: pige_to_internal(n, float(v)) for n, v in d.get("pige", {}).items()},
             pdge={a: AxisProfile.from_dict(p) for a, p in d.get("pdge", {}).items()},
-            effects=[parse_effect(s) for s in d.get("effects", [])],
+            effects=[parse_effect(s, families) for s in d.get("effects", [])],
             joint_offsets={a: np.asarray(v, dtype=float) * COMPONENT_SCALE
                            for a, v in d.get("joint_offsets", {}).items()},
             attachment_offsets={a: np.asarray(v, dtype=float) * COMPONENT_SCALE

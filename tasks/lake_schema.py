@@ -391,6 +391,13 @@ _TABLES = (
         _c("noise_floor_orientation_arcsec", "float64", "arcsec", TIP_MODEL, "the same for the orientation"),
         _c("bic", "float64", meaning="M ln(RSS/M) + k ln M over the M whitened fit residuals, k identifiable "
            "parameters (lower is better; compare steps of one campaign)"),
+        _c("compensated_vbm_position_um", "float64", "um", WORKPIECE, "mean tip position error of the validation "
+           "poses compensated with this step's model, as the VBM measures it on the verification capture "
+           "(verification phase after, source vbm; NaN: no capture yet)"),
+        _c("compensated_vbm_orientation_arcsec", "float64", "arcsec", WORKPIECE, "the same for the orientation"),
+        _c("compensated_truth_position_um", "float64", "um", WORKPIECE, "the same, true (simulated campaigns: each "
+           "capture image in its context; NaN for a lab's campaign)"),
+        _c("compensated_truth_orientation_arcsec", "float64", "arcsec", WORKPIECE, "the same for the orientation"),
         _c("created_at", "timestamp[us, UTC]", "UTC", meaning="when the step was computed", reproducible=False))),
     TableSchema("diagnosis", 2, "candidate effect the model lacks, scored against the fit's residual",
                 "tasks/diagnosis/diagnose.py (fivecal calibrate / fivecal diagnose)", (PARTITION, "rank"), (

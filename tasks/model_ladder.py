@@ -24,6 +24,10 @@ explains the campaign, in three ways that answer different questions:
   tens of arcsec of tilt noise) and a model error of a few µm hardly shows above it; hence also
 - ``validation_rms``: the whitened RMS of the validation poses' residuals (dimensionless, 1 at the noise
   level) — held out like ``cv_rms`` and as sensitive: each component weighed by its own noise.
+- ``compensated_vbm_*`` / ``compensated_truth_*``: the tip error after compensating the validation poses
+  with this step's model (mean over them, µm and arcsec), as the VBM measures it on the verification
+  capture and, for a simulated campaign, as it truly is: adding the right effect must lower it, not only
+  the whitened RMS.
 
 ``bic`` = M ln(RSS/M) + k ln M over the M whitened fit residuals (RSS their sum of squares, k the
 identifiable parameters): the Bayesian information criterion with the noise scale estimated; lower is
@@ -65,7 +69,14 @@ from tasks.verification import measured_tip_poses, noise_floor
 TABLE = "model_ladder"
 LADDER_COLUMNS = ("step", "effects", "effect_specs", "n_params", "n_residuals", "train_rms", "cv_rms", "validation_rms",
                   "validation_position_um", "validation_orientation_arcsec", "n_validation",
-                  "noise_floor_position_um", "noise_floor_orientation_arcsec", "bic", "created_at")
+                  "noise_floor_position_um", "noise_floor_orientation_arcsec", "bic",
+                  "compensated_vbm_position_um", "compensated_vbm_orientation_arcsec",
+                  "compensated_truth_position_um", "compensated_truth_orientation_arcsec", "created_at")
+TIP_COLUMNS = {("vbm", "position_um"): "compensated_vbm_position_um",
+               ("vbm", "orientation_arcsec"): "compensated_vbm_orientation_arcsec",
+               ("truth", "position_um"): "compensated_truth_position_um",
+               ("truth", "orientation_arcsec"): "compensated_truth_orientation_arcsec"}
+"""The ladder's columns of the compensated tip error: (verification source, quantity) -> column."""
 VALIDATION_STAGE = "validation"
 
 
@@ -135,14 +146,25 @@ def validation_errors(machine: Machine, model: ErrorModel, meas: Measurements,
     return out
 
 
+def compensated_tip_errors(verification: pd.DataFrame) -> dict[str, float]:
+    """The ladder's compensated tip error columns (:data:`TIP_COLUMNS`) from a ``verification`` table:
+    the mean position (µm) and orientation (arcsec) error of its ``after`` rows, per source (vbm,
+    truth); NaN for a source it lacks."""
+    after = verification[verification["phase"] == "after"]
+    return {col: float(after.loc[after["source"] == source, quantity].mean()) if (after["source"] == source).any()
+            else float("nan") for (source, quantity), col in TIP_COLUMNS.items()}
+
+
 def ladder_step(machine: Machine, model: ErrorModel, fit: FitResult, meas: Measurements, *,
-                cv_rms: float = float("nan"), camera: str = IDENTIFICATION_CAMERA) -> dict[str, Any]:
+                cv_rms: float = float("nan"), camera: str = IDENTIFICATION_CAMERA,
+                tip: dict[str, float] | None = None) -> dict[str, Any]:
     """One row of the ladder for a fitted model (``step`` is set by :func:`append_step`).
 
     model: the fitted model (its ``effects`` name the step). fit: the constant-parameter fit
     (``CalibrationResult.pige.fit``): its whitened residuals give train_rms, n_residuals and bic, its
     parameters n_params. meas: the campaign's measurements (the validation poses of ``camera`` give the
     validation errors and their noise floor). cv_rms: from :func:`cross_validated_rms` (NaN if not run).
+    tip: the compensated tip error of this model (:func:`compensated_tip_errors`; missing columns NaN).
     """
     r = np.asarray(fit.residual, dtype=float)
     m = r.size
@@ -158,6 +180,7 @@ def ladder_step(machine: Machine, model: ErrorModel, fit: FitResult, meas: Measu
             "validation_orientation_arcsec": _rms(val["orientation_arcsec"]), "n_validation": len(val),
             "noise_floor_position_um": _rms(val["noise_floor_position_um"]),
             "noise_floor_orientation_arcsec": _rms(val["noise_floor_orientation_arcsec"]), "bic": float(bic),
+            **{col: float((tip or {}).get(col, float("nan"))) for col in TIP_COLUMNS.values()},
             "created_at": pd.Timestamp(datetime.now(UTC))}
 
 
@@ -207,7 +230,11 @@ def read_ladder(campaign_id: str, root: str | Path | None = None) -> pd.DataFram
     df = read_table(TABLE, root, campaign_id)
     if df.empty:
         return pd.DataFrame(columns=list(LADDER_COLUMNS))
-    return df.drop(columns="campaign_id").sort_values("step", kind="stable").reset_index(drop=True)
+    df = df.drop(columns="campaign_id").sort_values("step", kind="stable").reset_index(drop=True)
+    for col in TIP_COLUMNS.values():  # steps written before these columns existed
+        if col not in df:
+            df[col] = float("nan")
+    return df
 
 
 def add_step(ladder: pd.DataFrame, row: dict[str, Any]) -> pd.DataFrame:
@@ -227,6 +254,8 @@ def add_step(ladder: pd.DataFrame, row: dict[str, Any]) -> pd.DataFrame:
     out["created_at"] = pd.to_datetime(out["created_at"], utc=True).astype("datetime64[us, UTC]")
     for c in ("step", "n_params", "n_residuals", "n_validation"):
         out[c] = out[c].astype(np.int64)
+    for c in TIP_COLUMNS.values():
+        out[c] = pd.to_numeric(out[c], errors="coerce").astype(float)
     return out.sort_values("step", kind="stable").reset_index(drop=True)[list(LADDER_COLUMNS)]
 
 

@@ -30,7 +30,7 @@ from tasks.campaign_io import (
 )
 from tasks.campaign_plan import CampaignPlan, plan_campaign
 from tasks.context import PoseContext, approach_directions
-from tasks.effects import camera_changes, parse_effect
+from tasks.effects import camera_changes, module_source_file, parse_effect, private_families
 from tasks.error_model import ErrorModel
 from tasks.kinematics import forward
 from tasks.machine import AXIS_ORDER, Machine, load_machine
@@ -82,6 +82,14 @@ def manifest_from_plan(plan: pd.DataFrame) -> pd.DataFrame:
     return m
 
 
+def plan_context(plan: pd.DataFrame) -> PoseContext:
+    """The context of every planned image (rows in capture order, AXIS_ORDER columns, time_s,
+    temperature_c): the approach direction of each axis from the moves of the plan (home before
+    the first row), the time and the temperature of the plan."""
+    return PoseContext(approach_directions(plan[list(AXIS_ORDER)].to_numpy(dtype=float)),
+                       plan["time_s"].to_numpy(float), plan["temperature_c"].to_numpy(float))
+
+
 def simulate_truth(machine: Machine, errors: ErrorModel, plan: pd.DataFrame,
                    fixture: dict[int, np.ndarray], size: str = "full") -> CampaignTruth:
     """Truth of every planned image.
@@ -91,8 +99,7 @@ def simulate_truth(machine: Machine, errors: ErrorModel, plan: pd.DataFrame,
     """
     commands = plan[list(AXIS_ORDER)].to_numpy(dtype=float)
     n = commands.shape[0]
-    context = PoseContext(approach_directions(commands), plan["time_s"].to_numpy(float),
-                          plan["temperature_c"].to_numpy(float))
+    context = plan_context(plan)
     fk = forward(machine, commands, errors, context)
     q = machine.commands_to_internal(commands)
     cameras = {name: cam.scaled(SIZES[size]) for name, cam in machine.cameras.items()}
@@ -183,11 +190,44 @@ def campaign_metadata(machine: Machine, campaign_id: str, size: str) -> dict:
             "cameras": cams, "plates": src["plates"], "views": src["views"], "calibration_targets": targets}
 
 
+EFFECT_MODULES_DIR = "effect_modules"
+
+
+def record_effect_modules(truth_dir: Path, modules) -> list[str]:
+    """Copy the source of each user effect module (dotted path or ``.py`` file, as
+    :func:`tasks.effects.load_effect_modules` takes them) into ``<truth_dir>/effect_modules/``;
+    returns the file names, for truth.json. The truth then holds every family it names, so the
+    simulator's side of later runs needs no module of the user's."""
+    names = []
+    for module in modules:
+        source = module_source_file(module)
+        target = Path(truth_dir) / EFFECT_MODULES_DIR / source.name
+        if source.name in names:
+            raise ValueError(f"effect modules {module!r} and another share the file name {source.name}")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(target, source.read_bytes())
+        names.append(source.name)
+    return names
+
+
+def read_truth(campaign_folder: Path) -> tuple[dict, ErrorModel]:
+    """truth.json of a simulated campaign and its true error model, the effects of the user modules
+    recorded with it (:func:`record_effect_modules`) parsed without adding them to the catalogue
+    (:func:`tasks.effects.private_families`): simulator side only."""
+    truth_dir = Path(campaign_folder) / TRUTH_DIR
+    doc = json.loads((truth_dir / "truth.json").read_text())
+    families = private_families([truth_dir / EFFECT_MODULES_DIR / n for n in doc.get("effect_modules", [])])
+    return doc, ErrorModel.from_dict(doc["error_model"], families)
+
+
 def write_campaign_truth(folder: Path, campaign_id: str, seed: int, size: str, effects: list[str],
-                         plan: CampaignPlan) -> tuple[Machine, pd.DataFrame, CampaignTruth]:
+                         plan: CampaignPlan, effect_modules: list[str] | None = None
+                         ) -> tuple[Machine, pd.DataFrame, CampaignTruth]:
     """Plan the campaign, run the true prototype, and write metadata, manifest and truth/.
 
-    Returns what :func:`write_images` needs. Images are not written here.
+    effect_modules: the user modules that define families of ``effects`` (already loaded); their
+    source is recorded in truth/ (:func:`record_effect_modules`). Returns what :func:`write_images`
+    needs. Images are not written here.
     """
     machine = load_machine("prototype")
     errors = load_prototype_errors()
@@ -203,6 +243,7 @@ def write_campaign_truth(folder: Path, campaign_id: str, seed: int, size: str, e
     atomic_write_parquet(folder / TRUTH_DIR / "dots.parquet", dots, provenance)
     truth_doc = {"seed": seed, "size": size, "plan": asdict(plan), "effects": list(effects),
                  "error_model": errors.to_dict(),
+                 "effect_modules": record_effect_modules(folder / TRUTH_DIR, effect_modules or []),
                  "cameras": {n: c.to_dict() for n, c in truth.cameras.items()},
                  "note": "Ground truth of a simulated campaign. No analysis stage reads this folder."}
     atomic_write_text(folder / TRUTH_DIR / "truth.json", json.dumps(truth_doc, indent=1))
@@ -219,9 +260,10 @@ def write_images(folder: Path, machine: Machine, poses: pd.DataFrame, truth: Cam
 
 
 def write_campaign(folder: Path, campaign_id: str, seed: int = 0, size: str = "small",
-                   effects: list[str] | None = None, plan: CampaignPlan | None = None) -> Path:
+                   effects: list[str] | None = None, plan: CampaignPlan | None = None,
+                   effect_modules: list[str] | None = None) -> Path:
     """A whole simulated campaign written sequentially, without Prefect (tests, notebooks)."""
     machine, poses, truth = write_campaign_truth(folder, campaign_id, seed, size, list(effects or []),
-                                                 plan or CampaignPlan())
+                                                 plan or CampaignPlan(), effect_modules)
     write_images(folder, machine, poses, truth, range(len(poses)), seed)
     return Path(folder)

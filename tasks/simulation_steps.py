@@ -17,10 +17,11 @@ from tasks.simulate import CampaignTruth, write_campaign_truth, write_images
 
 @task(cache_policy=NO_CACHE, persist_result=False)
 def plan_and_write_truth(staging: Path, campaign_id: str, seed: int, size: str, effects: list[str],
-                         small_plan: bool):
-    """Plan the campaign, run the true machine, write metadata, manifest and truth files."""
+                         small_plan: bool, effect_modules: list[str] | None = None):
+    """Plan the campaign, run the true machine, write metadata, manifest and truth files (the
+    sources of ``effect_modules`` recorded with the truth)."""
     plan = CampaignPlan.small() if small_plan else CampaignPlan()
-    return write_campaign_truth(staging, campaign_id, seed, size, effects, plan)
+    return write_campaign_truth(staging, campaign_id, seed, size, effects, plan, effect_modules)
 
 
 @task(cache_policy=NO_CACHE, persist_result=False)

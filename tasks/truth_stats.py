@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 
@@ -36,6 +38,31 @@ def tip_errors(machine: Machine, commands: np.ndarray, errors: ErrorModel,
     """
     actual = forward(machine, commands, errors, context).tool_in_workpiece()
     return tip_pose_error(actual, forward(machine, commands).tool_in_workpiece())
+
+
+def validation_poses(machine: Machine, poses: int = 100, seed: int = 0) -> tuple[np.ndarray, PoseContext]:
+    """The ``validation`` poses of the seed's campaign plan with ``poses`` of them (commands (N, 5),
+    mm and deg), each with the context the simulator gives it there: approach per axis from the
+    plan's moves, time since the campaign's start and temperature (:func:`tasks.simulate.plan_context`)."""
+    from tasks.campaign_plan import CampaignPlan, plan_campaign
+    from tasks.simulate import plan_context
+
+    plan, _ = plan_campaign(machine, CampaignPlan(validation_poses=poses), seed)
+    rows = np.flatnonzero((plan["stage"] == "validation").to_numpy())
+    return plan[list(AXIS_ORDER)].to_numpy(dtype=float)[rows], plan_context(plan).take(rows)
+
+
+def effects_change(machine: Machine, commands: np.ndarray, errors: ErrorModel,
+                   context: PoseContext | None = None) -> pd.DataFrame:
+    """Per pose, how far ``errors``' effects move the true tip: the norm of the change of the position
+    error vector (µm) and of the rotation vector (arcsec) against the same model without its effects,
+    at the same commands (N, 5) and context. Columns position_um, orientation_arcsec."""
+    with_effects = tip_errors(machine, commands, errors, context)
+    without = tip_errors(machine, commands, replace(errors, effects=[]), context)
+    d = (with_effects - without)
+    return pd.DataFrame({"position_um": np.linalg.norm(d[["dx_um", "dy_um", "dz_um"]].to_numpy(), axis=1),
+                         "orientation_arcsec": np.linalg.norm(d[["rx_arcsec", "ry_arcsec", "rz_arcsec"]].to_numpy(),
+                                                              axis=1)})
 
 
 def summarise(err: pd.DataFrame) -> dict[str, float]:

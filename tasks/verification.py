@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 
 from tasks import se3
+from tasks.context import PoseContext
 from tasks.error_model import ARCSEC, ErrorModel
 from tasks.kinematics import forward, tip_pose_error
 from tasks.machine import Machine
@@ -113,11 +114,14 @@ def capture_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, com
     return kept, errors.assign(repeats=count[keep])
 
 
-def modelled_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray) -> pd.DataFrame:
+def modelled_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray,
+                    context: PoseContext | None = None) -> pd.DataFrame:
     """Tip errors (µm, arcsec; rows of :func:`tip_errors_with_tool_direction`) that the machine
     described by ``model`` makes at ``commands`` (N, 5) against ``desired`` (N, 4, 4), workpiece frame:
-    with the simulator's truth, the true errors; with the identified model, what it predicts."""
-    return tip_errors_with_tool_direction(forward(machine, commands, model).tool_in_workpiece(), desired)
+    with the simulator's truth, the true errors; with the identified model, what it predicts.
+    context: the approach directions, times and temperatures of the moves (None: neutral, which
+    leaves out every effect that depends on them)."""
+    return tip_errors_with_tool_direction(forward(machine, commands, model, context).tool_in_workpiece(), desired)
 
 
 Parts = dict[tuple[str, str], tuple[list[str], pd.DataFrame]]
@@ -145,12 +149,16 @@ def with_phase_columns(parts: Parts, image_ids: list[str], commands: dict[str, n
     return out
 
 
-def predicted_by(machine: Machine, model: ErrorModel, desired: np.ndarray):
+def predicted_by(machine: Machine, model: ErrorModel, desired: np.ndarray,
+                 contexts: list[tuple[np.ndarray, PoseContext]] | None = None):
     """``compute`` for :func:`with_phase_columns`: the tip error norms (µm, arcsec, arcsec) that
     ``model`` predicts at a phase's commands against ``desired``. After a ``full`` compensation the
-    orientation it predicts is what A and C cannot turn (tasks.compensation)."""
+    orientation it predicts is what A and C cannot turn (tasks.compensation).
+    contexts: (commands, their context) pairs: a phase whose commands are one of them is predicted
+    in that context (neutral otherwise)."""
     def compute(commands: np.ndarray):
-        errors = modelled_errors(machine, model, desired, commands)
+        context = next((c for cmd, c in contexts or [] if cmd is commands), None)
+        errors = modelled_errors(machine, model, desired, commands, context)
         return tuple(errors[q].to_numpy() for q in PHASE_QUANTITIES)
     return compute
 

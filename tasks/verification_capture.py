@@ -18,11 +18,18 @@ import numpy as np
 import pandas as pd
 
 from tasks.campaign_io import COMMAND_COLUMNS, TRUTH_DIR, write_manifest, write_metadata
-from tasks.campaign_plan import temperature_at
-from tasks.capture_request import capture_rows
-from tasks.error_model import ErrorModel
+from tasks.campaign_plan import CampaignPlan, plan_campaign, temperature_at
+from tasks.capture_request import CAPTURE_GAP_IMAGES, capture_rows
 from tasks.machine import AXIS_ORDER, load_machine
-from tasks.simulate import manifest_from_plan, simulate_truth, write_images
+from tasks.simulate import (
+    EFFECT_MODULES_DIR,
+    manifest_from_plan,
+    plan_context,
+    read_truth,
+    simulate_truth,
+    write_images,
+)
+from tasks.verification import modelled_errors
 
 
 def is_simulated(campaign_folder: Path) -> bool:
@@ -43,18 +50,24 @@ def capture_plan(image_ids, commands: np.ndarray, camera: str, start_s: float,
     return df
 
 
+def _capture_plan_of(campaign_folder: Path, doc: dict, image_ids, commands: np.ndarray, camera: str,
+                     repeats: int) -> pd.DataFrame:
+    """:func:`capture_plan` on the campaign's schedule: after its last image, at its image interval."""
+    seconds = float(doc["plan"].get("seconds_per_image", 3.0))
+    manifest = pd.read_csv(Path(campaign_folder) / "manifest.csv")
+    return capture_plan(image_ids, commands, camera, (len(manifest) + CAPTURE_GAP_IMAGES) * seconds, seconds,
+                        repeats)
+
+
 def simulate_capture(campaign_folder: Path, out_folder: Path, image_ids, commands: np.ndarray,
                      camera: str = "camera1", repeats: int = 1) -> Path:
     """Render the capture at ``commands`` (N, 5), ``repeats`` images per pose (:func:`capture_plan`),
     into ``out_folder`` (replaced whole); returns it."""
     campaign_folder, out_folder = Path(campaign_folder), Path(out_folder)
-    doc = json.loads((campaign_folder / TRUTH_DIR / "truth.json").read_text())
+    doc, errors = read_truth(campaign_folder)
     metadata = json.loads((campaign_folder / "campaign.json").read_text())
-    seconds = float(doc["plan"].get("seconds_per_image", 3.0))
-    manifest = pd.read_csv(campaign_folder / "manifest.csv")
-    plan = capture_plan(image_ids, commands, camera, (len(manifest) + 60) * seconds, seconds, repeats)
+    plan = _capture_plan_of(campaign_folder, doc, image_ids, commands, camera, repeats)
     machine = load_machine("prototype")
-    errors = ErrorModel.from_dict(doc["error_model"])
     truth = simulate_truth(machine, errors, plan, {}, doc["size"])
     staging = out_folder.with_name(out_folder.name + ".partial")
     shutil.rmtree(staging, ignore_errors=True)
@@ -63,7 +76,37 @@ def simulate_capture(campaign_folder: Path, out_folder: Path, image_ids, command
     write_manifest(staging, manifest_from_plan(plan))
     (staging / TRUTH_DIR).mkdir()
     (staging / TRUTH_DIR / "truth.json").write_text(json.dumps({**doc, "note": "verification capture"}))
+    modules = campaign_folder / TRUTH_DIR / EFFECT_MODULES_DIR
+    if modules.is_dir():
+        shutil.copytree(modules, staging / TRUTH_DIR / EFFECT_MODULES_DIR)
     write_images(staging, machine, plan, truth, range(len(plan)), int(doc["seed"]) * 7919 + 1)
     shutil.rmtree(out_folder, ignore_errors=True)
     staging.rename(out_folder)
     return out_folder
+
+
+def true_capture_errors(campaign_folder: Path, image_ids, commands: np.ndarray, desired: np.ndarray,
+                        camera: str = "camera1", repeats: int = 1) -> pd.DataFrame:
+    """The true tip errors of the capture that :func:`simulate_capture` renders at ``commands`` (N, 5)
+    against ``desired`` (N, 4, 4): each image with its context (approach from the capture's moves,
+    time and temperature of its schedule), a pose's row the mean of its ``repeats`` images (columns
+    of :func:`tasks.verification.modelled_errors`, µm and arcsec, workpiece frame)."""
+    doc, errors = read_truth(campaign_folder)
+    plan = _capture_plan_of(campaign_folder, doc, image_ids, commands, camera, repeats)
+    n = len(commands)
+    rows = modelled_errors(load_machine("prototype"), errors, np.tile(desired, (repeats, 1, 1)),
+                           plan[list(AXIS_ORDER)].to_numpy(dtype=float), plan_context(plan))
+    return rows.groupby(np.tile(np.arange(n), repeats)).mean().reset_index(drop=True)
+
+
+def true_campaign_errors(campaign_folder: Path, image_ids, commands: np.ndarray, desired: np.ndarray
+                         ) -> pd.DataFrame:
+    """The true tip errors of the campaign's images ``image_ids`` at their ``commands`` (N, 5; e.g. the
+    validation poses, before compensation) against ``desired`` (N, 4, 4), each in the context the
+    simulator gave it (the campaign's plan: approach, time, temperature); columns of
+    :func:`tasks.verification.modelled_errors`."""
+    doc, errors = read_truth(campaign_folder)
+    machine = load_machine("prototype")
+    plan, _ = plan_campaign(machine, CampaignPlan(**doc["plan"]), int(doc["seed"]))
+    row = pd.Series(np.arange(len(plan)), index=plan["image_id"]).loc[list(image_ids)].to_numpy()
+    return modelled_errors(machine, errors, desired, commands, plan_context(plan).take(row))

@@ -25,6 +25,20 @@ def test_truth_stats_with_an_effect_changes_the_numbers():
     assert base != more
 
 
+def test_truth_stats_says_how_far_a_context_effect_moves_the_tip():
+    """Each validation pose in its campaign context: an 8 µm backlash moves every tip by 4 µm."""
+    result = runner.invoke(app, ["truth-stats", "--poses", "10", "--effect", "backlash:axis=Z,amount_um=8"])
+    assert result.exit_code == 0
+    assert "The effects move the tip by 4.00 µm on average (max 4.00)" in result.output
+
+
+def test_simulate_refuses_a_missing_effect_module_before_doing_anything(tmp_path):
+    result = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--effect-module", str(tmp_path / "nope.py")])
+    assert result.exit_code != 0
+    assert "nope.py" in result.output
+    assert not (tmp_path / "x").exists()
+
+
 def test_simulate_refuses_a_bad_effect_before_doing_anything(tmp_path):
     result = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--effect", "pitch_cyclic:axis=Q"])
     assert result.exit_code != 0

@@ -83,3 +83,21 @@ def explained_sentence(camera: str, direction: str, cand: Candidate, spec: str, 
     cv = "" if not np.isfinite(cv_after) else f"; cross-validated RMS {cv_before:.2f} → {cv_after:.2f}"
     return (f"{camera} residual {direction} follows {follows(cand)}: `{spec}` explains {100 * explained:.0f} % "
             f"of it ({p_text(p)}, ΔBIC {delta_bic:+.0f}{cv})")
+
+
+def residual_follows_sentence(trends, camera: str, limit: int = 3) -> str | None:
+    """When no candidate is accepted: the variables ``camera``'s residual follows beyond its band, from
+    :func:`tasks.residuals.trend_summary` (``trends``), strongest first (χ² per bin), at most ``limit``,
+    each with the component that follows it most and the span of its bin means (µm or arcsec). None
+    when nothing is significant. What the residual follows is where an effect of one's own would act
+    (docs/user-effects.md)."""
+    t = trends[(trends["camera"] == camera) & trends["significant"]]
+    if t.empty:
+        return None
+    t = t.assign(strength=t["chi2"] / t["n_bins"]).sort_values("strength", ascending=False, kind="stable")
+    top = t.drop_duplicates("variable").head(limit)
+    parts = [f"{r.variable} ({r.component} spans {r.span:.3g} {r.component.rsplit('_', 1)[-1]}, "
+             f"χ²/bin {r.strength:.3g})" for r in top.itertuples(index=False)]
+    return (f"What the {camera} residual follows most (binned, outside its 95 % band): {'; '.join(parts)}. "
+            f"An effect that depends on these and that no catalogue family describes can be written as a "
+            f"family of one's own (docs/user-effects.md).")

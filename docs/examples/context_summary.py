@@ -1,0 +1,56 @@
+"""Print the tip errors of the context walk-through (docs/walkthrough.md, "Effects that depend on
+direction, time or a user's own variable"): per campaign, each model-ladder step with its
+cross-validated RMS and the tip error after compensating with that step's model (VBM and truth), the
+true tip error before compensation and how far the hidden effect moves it there (against the clean
+campaign of the same seed, pose by pose), and the ratio of the last step to the clean campaign of the same
+seed.
+
+    python docs/examples/context_summary.py RESULTS_ROOT CAMPAIGN_ID...   # clean-s<seed> are the references
+"""
+
+import sys
+
+import pandas as pd
+
+from tasks.model_ladder import read_ladder
+from tasks.results_lake import read_table
+
+
+def _before_truth(root: str, cid: str) -> pd.DataFrame:
+    v = read_table("verification", root, cid)
+    return v[(v["phase"] == "before") & (v["source"] == "truth")].set_index("image_id")[["dx_um", "dy_um", "dz_um"]]
+
+
+def _before_shift(root: str, cid: str) -> float:
+    """Mean over the validation poses of how far the hidden effect moves the true tip before
+    compensation: ‖Δ(dx, dy, dz)‖ against the clean campaign of the same seed (same poses), µm."""
+    clean = "clean-" + cid.rsplit("-", 1)[-1]
+    a, b = _before_truth(root, cid), _before_truth(root, clean)
+    return float(((a - b.loc[a.index]) ** 2).sum(axis=1).pow(0.5).mean())
+
+
+def summary(root: str, campaign_ids: list[str]) -> pd.DataFrame:
+    rows = []
+    for cid in campaign_ids:
+        ladder = read_ladder(cid, root)
+        verification = read_table("verification", root, cid)
+        before = verification[(verification["phase"] == "before") & (verification["source"] == "truth")]
+        for r in ladder.itertuples(index=False):
+            rows.append({"campaign": cid, "step": r.step, "effects": r.effect_specs or "-", "cv_rms": r.cv_rms,
+                         "before_truth_um": before["position_um"].mean(),
+                         "after_vbm_um": r.compensated_vbm_position_um,
+                         "after_truth_um": r.compensated_truth_position_um,
+                         "after_vbm_arcsec": r.compensated_vbm_orientation_arcsec,
+                         "after_truth_arcsec": r.compensated_truth_orientation_arcsec})
+    out = pd.DataFrame(rows)
+    out["before_truth_shift_um"] = out["campaign"].map({cid: _before_shift(root, cid) for cid in campaign_ids})
+    seed = out["campaign"].str.extract(r"-(s\d+)$")[0]
+    clean = out[out["campaign"].str.startswith("clean-")].groupby(seed).last()
+    for q in ("after_vbm_um", "after_truth_um"):
+        out[f"{q}/clean"] = out[q] / seed.map(clean[q])
+    return out
+
+
+if __name__ == "__main__":
+    pd.set_option("display.width", 250, "display.max_colwidth", 70)
+    print(summary(sys.argv[1], sys.argv[2:]).round(3).to_string(index=False))

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from fivecal import lake_cli, recalibrate_cli
+from fivecal import dispense_cli, lake_cli, recalibrate_cli
 from fivecal.command_guard import GuardedTyper
 from fivecal.options import (
     DaskAddress,
@@ -393,18 +393,22 @@ def truth_stats(
 def demo(
     fresh: Annotated[bool, typer.Option(help="re-simulate the demo campaign even if it exists")] = False,
 ) -> None:
-    """Run the main job (calibrate) on the built-in demo campaign (simulated at small image size)."""
+    """Run the main job (calibrate, then the dispensing test) on the built-in demo campaign (simulated at
+    small image size)."""
     if fresh or not (DEMO_CAMPAIGN / "manifest.csv").exists():
         simulate(DEMO_CAMPAIGN, seed=0, size="small", effect=[], plan="default", overwrite=True)
     else:
         typer.echo(f"using existing demo campaign {DEMO_CAMPAIGN}")
     calibrate(DEMO_CAMPAIGN, None, "rrht", Path("reports"))
+    dispense_cli.dispense_test(DEMO_CAMPAIGN, None, Path("reports"), None, "rrht")
 
 
 app.command("query")(lake_cli.query)
 app.command("reproduce")(lake_cli.reproduce)
 app.command("recalibrate")(recalibrate_cli.recalibrate)
 app.command("serve-recalibration")(recalibrate_cli.serve_recalibration)
+app.command("dispense-test")(dispense_cli.dispense_test)
+app.command("inspect")(dispense_cli.inspect)
 
 
 def main() -> None:  # pragma: no cover

@@ -194,6 +194,47 @@ _CAMERA_INTRINSICS = (("fx_px", "px", "focal length along u"), ("fy_px", "px", "
                       ("p1", "", "tangential distortion p1"), ("p2", "", "tangential distortion p2"),
                       ("k3", "", "radial distortion k3"))
 
+def _dispense_columns() -> tuple[Column, ...]:
+    surface = "on the workpiece surface (workpiece frame, z = 0)"
+    cols = [_s("image_id", "the ring's image in the capture folder"),
+            _s("phase", "nominal | compensated | check (compensated with the tip offset folded in)"),
+            _s("ring_id", "ring target, row by row over the workpiece"),
+            _c("ring_x_mm", "float64", "mm", WORKPIECE, "the ring's printed centre, x"),
+            _c("ring_y_mm", "float64", "mm", WORKPIECE, "the ring's printed centre, y")]
+    for axis, unit, _ in _AXES:
+        cols.append(_c(f"{axis}_{'deg' if unit == 'deg' else 'mm'}", "float64", unit, COMMAND,
+                       f"{axis} command the dot was dispensed at"))
+    for axis, unit, _ in _AXES:
+        cols.append(_c(f"image_{axis}_{'deg' if unit == 'deg' else 'mm'}", "float64", unit, COMMAND,
+                       f"{axis} command camera 1 imaged the ring at"))
+    cols += [_c("ring_u_px", "float64", "px", IMAGE, "ring centre, sensor pixels (NaN: no ring)"),
+             _c("ring_v_px", "float64", "px", IMAGE, "ring centre, sensor pixels"),
+             _c("dot_u_px", "float64", "px", IMAGE, "dot centre, sensor pixels (NaN: no dot)"),
+             _c("dot_v_px", "float64", "px", IMAGE, "dot centre, sensor pixels"),
+             _c("ring_meas_x_mm", "float64", "mm", WORKPIECE, f"measured ring centre {surface}, x"),
+             _c("ring_meas_y_mm", "float64", "mm", WORKPIECE, f"measured ring centre {surface}, y"),
+             _c("dot_x_mm", "float64", "mm", WORKPIECE, f"measured dot centre {surface}, x"),
+             _c("dot_y_mm", "float64", "mm", WORKPIECE, f"measured dot centre {surface}, y"),
+             _c("dx_um", "float64", "um", WORKPIECE, "δx = dot − ring centre (§5.3)"),
+             _c("dy_um", "float64", "um", WORKPIECE, "δy = dot − ring centre (§5.3)"),
+             _c("area_px2", "float64", "px²", IMAGE, "A: area inside the sub-pixel outline (§4.3)"),
+             _c("perimeter_px", "float64", "px", IMAGE, "P: length of the sub-pixel outline"),
+             _c("diameter_px", "float64", "px", IMAGE, "d = √(4A/π)"),
+             _c("diameter_mm", "float64", "mm", WORKPIECE, "d on the surface"),
+             _c("circularity", "float64", meaning="C = 4πA/P²"),
+             _c("nsd_r", "float64", meaning="NSD_r = σ_r/μ_r of the outline's radii from its centroid"),
+             _c("cov_i", "float64", meaning="CoV_I = σ_I/μ_I of the grey levels inside the outline"),
+             _s("polarity", "bright | dark (§4.3's automatic polarity); empty without a ring"),
+             _c("qualified", "bool", meaning="A, C, NSD_r, CoV_I within the thresholds, one dot, not at the border"),
+             _s("reason", "why not qualified (no ring, no dot, N dots in the ring, touches the border, the "
+                          "features that fail, image missing); empty when qualified"),
+             _c("truth_dx_um", "float64", "um", WORKPIECE, "simulator: true δx (where the tip was); NaN for a lab"),
+             _c("truth_dy_um", "float64", "um", WORKPIECE, "simulator: true δy; NaN for a lab"),
+             _c("truth_diameter_mm", "float64", "mm", WORKPIECE, "simulator: true equivalent diameter"),
+             _s("truth_defect", "simulator: none | satellite | void | smear | missing; null for a lab")]
+    return tuple(cols)
+
+
 def _residual_columns() -> tuple[Column, ...]:
     comps = (("dx", "um", "v_x"), ("dy", "um", "v_y"), ("dz", "um", "v_z"), ("rx", "arcsec", "ω_x"),
              ("ry", "arcsec", "ω_y"), ("rz", "arcsec", "ω_z"))
@@ -324,7 +365,8 @@ _TABLES = (
                 (PARTITION, "phase", "source", "image_id"), (
         _s("image_id", "validation image"),
         _i("pose", "0-based index of the pose within its (phase, source) rows"),
-        _s("phase", "before | after (compensation)"),
+        _s("phase", "before | after (compensation) | after_tip (compensation with the dispensing test's tip "
+                    "offset, flows/dispense.py)"),
         _s("source", "vbm (as the vision system measures it) | truth (simulator)"),
         _c("position_um", "float64", "um", WORKPIECE, "‖tip position error‖"),
         _c("orientation_arcsec", "float64", "arcsec", TIP_ROTATION, "‖tip orientation error‖"),
@@ -439,6 +481,8 @@ _TABLES = (
         _c("z", "float64", meaning="|Δ| / combined_uncertainty"),
         _c("flagged", "bool", meaning="moved past tolerance (docs/recalibration.md)"),
         _s("rule", "abs+sig | abs | sig | within [(u unknown)/(no tolerance)] | reference | unavailable"))),
+    TableSchema("dispense_inspection", 1, "ring × phase of the dispensing test",
+                "flows/dispense.py (fivecal dispense-test)", (PARTITION, "phase", "ring_id"), _dispense_columns()),
 )
 TABLES: dict[str, TableSchema] = {t.name: t for t in _TABLES}
 

@@ -1,0 +1,204 @@
+"""The dispensing test (§4.3, §5.3), after ``calibrate``: see the tip, and close the calibration on it.
+
+A workpiece of ring targets on the C table; the machine dispenses a dot at every ring with the
+nominal commands and with the compensated ones (one capture, two phases), camera 1 images every ring,
+the §4.3 inspection measures each dot's offset from its ring, and the offsets of the compensated
+phase fix the tip's constant offset in the tool frame (tasks.dispensing.tip). The offset is folded
+into the identified model as its ``tool_offset`` effect and everything is compensated again: the
+``check`` phase dispenses a fresh workpiece with it, and the validation poses are compensated with
+it (the ``verification`` table's phase ``after_tip``).
+
+For a simulated campaign the simulator dispenses and renders; for a lab's campaign the flow writes
+``dispense_plan.csv`` into the capture folder and measures the images on the next run
+(docs/dispensing-test.md). Writes the ``dispense_inspection`` table, the ``verification`` table's
+after_tip rows and ``<reports>/<campaign_id>/<run>/dispensing/``.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from prefect import flow, get_run_logger
+
+import fivecal
+from flows.measure import measure_campaign
+from tasks.calibration_steps import compensate_task, identify_task
+from tasks.compensation import desired_tip_poses
+from tasks.detector_comparison import intrinsics_from_table
+from tasks.dispensing.capture import CAMERA, plan_rows, write_plan
+from tasks.dispensing.inspection import load_config
+from tasks.dispensing.measure import dispense_rows, full_resolution, load_capture_manifest
+from tasks.dispensing.report import write_dispensing_report
+from tasks.dispensing.steps import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
+from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
+from tasks.dispensing.workpiece import Workpiece, dispensing_commands, dispensing_orientations, imaging_commands
+from tasks.effects import parse_effect
+from tasks.error_model import ErrorModel
+from tasks.identification.measurements import assemble_measurements
+from tasks.ingest import load_campaign_metadata
+from tasks.machine import load_machine
+from tasks.results_lake import read_provenance, read_table, write_partition
+from tasks.verification import modelled_errors, predicted_by, verification_table
+from tasks.verification_capture import is_simulated
+from tasks.vision import content_key, nominal_machine
+
+PHASES = ("nominal", "compensated", "check")
+
+
+def _truth_columns(folder: Path) -> pd.DataFrame | None:
+    path = folder / "truth" / "dots.csv"
+    return pd.read_csv(path) if path.is_file() else None
+
+
+def _capture(folder: Path, campaign: Path, rows: pd.DataFrame, workpiece: Workpiece, seed: int, simulated: bool,
+             config, logger) -> tuple | None:
+    """(manifest, inspected rows, truth rows or None) of a capture folder, after the simulator rendered
+    it (simulated) or the lab wrote it; None (and the request written) when the lab has not yet."""
+    if simulated:
+        folder = Path(dispense_capture_task(campaign, folder, rows, workpiece, seed))
+    elif not (folder / "manifest.csv").is_file():
+        plan = write_plan(folder, rows)
+        logger.warning(f"dispensing capture requested: dispense and image the {len(rows)} rings listed in {plan}, "
+                       f"write images/ and manifest.csv into {folder} (docs/dispensing-test.md), then run "
+                       f"dispense-test again")
+        return None
+    inspected = inspect_task(folder, config)
+    manifest = load_capture_manifest(folder)
+    return manifest, inspected, _truth_columns(folder)
+
+
+def _table_rows(parts, machine, model, camera) -> pd.DataFrame:
+    frames = []
+    for manifest, inspected, truth in parts:
+        rows = dispense_rows(manifest, inspected, machine, model, camera)
+        if truth is not None:
+            rows = rows.merge(truth.drop(columns=["truth_nsd_r"], errors="ignore"), on="image_id", how="left")
+        else:
+            rows = rows.assign(truth_dx_um=np.nan, truth_dy_um=np.nan, truth_diameter_mm=np.nan, truth_defect=None)
+        frames.append(rows.drop(columns=["roi_x0", "roi_y0", "binning"], errors="ignore"))
+    return pd.concat(frames, ignore_index=True)
+
+
+def _fit_rows(rows: pd.DataFrame) -> pd.DataFrame:
+    ok = rows["qualified"] & np.isfinite(rows["dx_um"]) & np.isfinite(rows["dy_um"])
+    return rows[ok]
+
+
+@flow(name="dispense-test")
+def dispense_test(campaign: str, results_root: str | None = None, reports_root: str = "reports",
+                  run: str | None = None, inspection_config: str | None = None, detector: str = "rrht",
+                  workpiece: Workpiece = Workpiece()) -> dict[str, Any]:  # noqa: B008 (frozen)
+    """The dispensing test of a calibrated campaign; returns a summary (tip offset ± u, capture
+    states, tables, report; for simulated campaigns the true constant tool-frame error before and
+    after the tip fit)."""
+    logger = get_run_logger()
+    config = load_config(inspection_config)
+    folder = Path(campaign).resolve()
+    root = None if results_root is None else Path(results_root)
+    metadata = load_campaign_metadata(folder)
+    campaign_id = metadata["campaign_id"]
+    try:
+        calib_prov = read_provenance("pige", campaign_id, root)
+    except (FileNotFoundError, OSError) as e:
+        raise ValueError(f"campaign {campaign_id} has no calibration in the lake ({e}): run fivecal calibrate "
+                         f"first") from None
+    measure_campaign(str(folder), results_root, detector)  # cached: calibrate ran it
+    machine = nominal_machine(metadata)
+    images, pose_table = read_table("images", root, campaign_id), read_table("poses", root, campaign_id)
+    cameras = intrinsics_from_table(read_table("camera_calibration", root, campaign_id), metadata)
+    simulated = is_simulated(folder)
+    truth_doc = json.loads((folder / "truth" / "truth.json").read_text()) if simulated else None
+    truth = ErrorModel.from_dict(truth_doc["error_model"]) if simulated else None
+    base = ErrorModel(effects=[parse_effect(s) for s in calib_prov.get("effects", [])])
+    orientation = calib_prov.get("orientation_objective", "full")
+    measurements = assemble_measurements(images, pose_table)
+    model = identify_task.submit(machine, measurements, truth, base).result().model  # calibrate's, cached
+
+    five_axis = measurements.stage("pige").commands
+    seed = int(truth_doc["seed"]) if simulated else int(content_key(campaign_id)[:8], 16)
+    n = workpiece.rows * workpiece.cols
+    orientations = dispensing_orientations(n, (five_axis[:, 3].min(), five_axis[:, 3].max()),
+                                           (five_axis[:, 4].min(), five_axis[:, 4].max()), seed)
+    nominal = dispensing_commands(machine, workpiece, orientations)
+    imaging = imaging_commands(machine, workpiece, CAMERA)
+    compensated = compensate_task.submit(machine, model, nominal, orientation).result().commands
+    full_camera = full_resolution(cameras[CAMERA], round(load_machine("prototype").cameras[CAMERA].width_px
+                                                         / cameras[CAMERA].width_px))
+    first_rows = pd.concat([plan_rows("nominal", workpiece, nominal, imaging),
+                            plan_rows("compensated", workpiece, compensated, imaging)], ignore_index=True)
+    key = content_key(DISPENSE_CODE_VERSION, first_rows.round(9), workpiece.to_dict())[:12]
+    first = _capture(folder / "captures" / f"dispense-{key}", folder, first_rows, workpiece, seed, simulated,
+                     config, logger)
+    summary: dict[str, Any] = {"campaign_id": campaign_id, "captures": {}, "tables": {}}
+    if first is None:
+        summary["captures"]["dispense"] = "requested"
+        return summary
+    summary["captures"]["dispense"] = "measured"
+    rows = _table_rows([first], machine, model, full_camera)
+    fit_on = _fit_rows(rows[rows["phase"] == "compensated"])
+    fit = fit_tip_offset(machine, model, fit_on[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy(float),
+                         fit_on[["ring_x_mm", "ring_y_mm"]].to_numpy(float),
+                         fit_on[["dx_um", "dy_um"]].to_numpy(float) * 1e-3)
+    logger.info(f"tip offset (tool frame) from {fit.dots} dots: "
+                + ", ".join(f"{v:+.2f} ± {u:.2f}" for v, u in zip(fit.offset_um, fit.uncertainty_um, strict=True))
+                + f" µm; dot residual rms {fit.residual_rms_um:.2f} µm")
+
+    check_cmd = compensate_task.submit(machine, fit.model, nominal, orientation).result().commands
+    check_rows = plan_rows("check", workpiece, check_cmd, imaging)
+    check_key = content_key(DISPENSE_CODE_VERSION, check_rows.round(9), workpiece.to_dict())[:12]
+    check = _capture(folder / "captures" / f"dispense-check-{check_key}", folder, check_rows, workpiece, seed + 1,
+                     simulated, config, logger)
+    parts = [first] if check is None else [first, check]
+    summary["captures"]["check"] = "requested" if check is None else "measured"
+    rows = _table_rows(parts, machine, model, full_camera)
+
+    # the held-out poses, compensated with the tip folded in
+    validation = measurements.stage("validation", camera=CAMERA)
+    ids, commands = validation.table.image_id.tolist(), validation.commands
+    desired = desired_tip_poses(machine, commands)
+    after_tip = compensate_task.submit(machine, fit.model, commands, orientation).result().commands
+    provenance = {"fivecal_version": fivecal.__version__, "campaign": str(folder),
+                  "dispense_code": DISPENSE_CODE_VERSION,
+                  "workpiece": workpiece.to_dict(), "inspection": config.__dict__,
+                  "tip_offset_um": fit.offset_um.tolist(), "tip_offset_uncertainty_um": fit.uncertainty_um.tolist(),
+                  "tip_fit_dots": fit.dots, "tip_fit_residual_rms_um": fit.residual_rms_um,
+                  "calibration": {k: calib_prov.get(k) for k in ("effects", "orientation_objective",
+                                                                  "identification_code")}}
+    summary["tables"]["dispense_inspection"] = str(write_partition("dispense_inspection", campaign_id, rows,
+                                                                   provenance, root))
+    verification = read_table("verification", root, campaign_id)
+    verification = verification[verification["phase"] != "after_tip"].drop(columns="campaign_id", errors="ignore")
+    if simulated:
+        errors = modelled_errors(machine, truth, desired, after_tip)
+        predicted = predicted_by(machine, fit.model, desired)(after_tip)
+        errors = errors.assign(model_predicted_position_um=predicted[0],
+                               model_predicted_orientation_arcsec=predicted[1],
+                               model_predicted_tool_direction_arcsec=predicted[2])
+        new = verification_table({("after_tip", "truth"): (ids, errors)})
+        verification = pd.concat([verification, new], ignore_index=True)
+        compensated_val = compensate_task.submit(machine, model, commands, orientation).result().commands
+        summary["truth"] = {
+            "constant_before_um": constant_tool_frame_error(machine, truth, desired, compensated_val).tolist(),
+            "constant_after_tip_um": constant_tool_frame_error(machine, truth, desired, after_tip).tolist(),
+            "position_after_um": float(
+                modelled_errors(machine, truth, desired, compensated_val)["position_um"].mean()),
+            "position_after_tip_um": float(errors["position_um"].mean()),
+        }
+    ver_prov = {**read_provenance("verification", campaign_id, root), "after_tip": provenance}
+    for k in ("table", "campaign_id", "schema_version"):
+        ver_prov.pop(k, None)
+    summary["tables"]["verification"] = str(write_partition("verification", campaign_id, verification, ver_prov, root))
+
+    run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    out_dir = Path(reports_root) / campaign_id / run / "dispensing"
+    summary.update(tip_offset_um=fit.offset_um.tolist(), tip_offset_uncertainty_um=fit.uncertainty_um.tolist(),
+                   tip_fit_dots=fit.dots, tip_fit_residual_rms_um=fit.residual_rms_um,
+                   report=str(write_dispensing_report(out_dir, rows, verification, fit, summary, simulated,
+                                                     config.__dict__)))
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary

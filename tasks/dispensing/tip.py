@@ -1,0 +1,118 @@
+"""Where the dots land, and the tip offset that the dots reveal.
+
+A needle dispenser holds its opening a small standoff above the surface; the drop that forms
+there (well under a millimetre: surface tension dominates gravity, Bond number ≪ 1) wets the
+surface at the point nearest the opening, the foot of the surface normal through it. A dot lands
+at the (x, y) of the real tip position in the workpiece frame (surface z = 0). Its offset from the
+ring is the tip's error in the surface plane: a tip offset t in the tool frame moves the dot by
+P R t (R the tip rotation, P the projection onto the surface), so at A = 0 the component along the
+tool axis is invisible and the spread of A over the rings (sin A) makes it seen. Along the tool
+axis the drop could not tell it: moving the opening along its own axis moves that axis' trace on
+the surface not at all.
+
+The fit: measured dot − ring offsets of qualified dots (any phases; each with its commands) against
+those the identified model predicts with a constant tool-frame offset t added to it (the
+``tool_offset`` effect, tasks.effects); Gauss–Newton on t (µm), covariance σ² (JᵀJ)⁻¹ with σ² from
+the residuals. The camera sees plates, never the tip: no other measurement fixes t.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from tasks.context import PoseContext
+from tasks.effects import ToolOffset
+from tasks.error_model import UM, ErrorModel
+from tasks.kinematics import forward
+from tasks.machine import Machine
+
+MAX_CONDITION = 1e3  # beyond it the tool-axis component is not seen (mean |sin A| below ~1e-3)
+TIP_FIT_STEP_UM = 1.0  # finite-difference step of the Jacobian (the landing is linear in t to < 1e-6)
+
+
+def landing_points(machine: Machine, model: ErrorModel | None, commands: np.ndarray,
+                   context: PoseContext | None = None) -> np.ndarray:
+    """(N, 2) where the dots land on the workpiece surface (mm, workpiece frame) when the machine
+    described by ``model`` dispenses at ``commands`` (N, 5): the foot of the surface normal
+    through the tip."""
+    return forward(machine, commands, model, context).tool_in_workpiece()[:, :2, 3]
+
+
+def tool_offset_of(model: ErrorModel) -> np.ndarray:
+    """(3,) the model's tool_offset effect (µm, tip frame), zeros when it has none."""
+    out = np.zeros(3)
+    for e in model.effects:
+        if isinstance(e, ToolOffset):
+            out += [e["dx_um"], e["dy_um"], e["dz_um"]]
+    return out
+
+
+def with_tool_offset(model: ErrorModel, offset_um) -> ErrorModel:
+    """A copy of ``model`` whose tool_offset effect is its own plus ``offset_um`` (3,) (µm, tip frame)."""
+    total = tool_offset_of(model) + np.asarray(offset_um, dtype=float)
+    others = [e for e in model.effects if not isinstance(e, ToolOffset)]
+    effect = ToolOffset(dx_um=total[0], dy_um=total[1], dz_um=total[2])
+    return replace(model, effects=[*others, effect])
+
+
+@dataclass(frozen=True)
+class TipFit:
+    """The tip offset the dots reveal: ``offset_um`` (3,) added to the model's tool_offset (µm,
+    tip frame), its covariance (3, 3) (µm²), the rms of the post-fit dot residuals (µm), the number
+    of dots used and the model with the offset folded in."""
+
+    offset_um: np.ndarray
+    covariance_um2: np.ndarray
+    residual_rms_um: float
+    dots: int
+    model: ErrorModel
+
+    @property
+    def uncertainty_um(self) -> np.ndarray:
+        """(3,) standard uncertainties (µm)."""
+        return np.sqrt(np.diag(self.covariance_um2))
+
+
+def fit_tip_offset(machine: Machine, model: ErrorModel, commands: np.ndarray, ring_mm: np.ndarray,
+                   offset_mm: np.ndarray, iterations: int = 3) -> TipFit:
+    """Fit the constant tool-frame tip offset from dot offsets.
+
+    commands: (N, 5) the commands each dot was dispensed at; ring_mm: (N, 2) ring centres and
+    offset_mm: (N, 2) measured dot − ring offsets (mm, workpiece frame). Raises ValueError with
+    fewer than 3 dots or without the spread of A that makes the offset along the tool axis seen."""
+    commands = np.asarray(commands, dtype=float)
+    if len(commands) < 3:
+        raise ValueError(f"the tip fit needs at least 3 qualified dots, got {len(commands)}")
+    measured = np.asarray(ring_mm, float) + np.asarray(offset_mm, float)
+    t = np.zeros(3)
+    for _ in range(iterations):
+        base = landing_points(machine, with_tool_offset(model, t), commands)
+        J = np.empty((2 * len(commands), 3))
+        for k in range(3):
+            step = np.zeros(3)
+            step[k] = TIP_FIT_STEP_UM
+            moved = landing_points(machine, with_tool_offset(model, t + step), commands)
+            J[:, k] = ((moved - base) / (TIP_FIT_STEP_UM * UM)).ravel()  # mm per mm
+        r = (measured - base).ravel() / UM  # µm
+        JtJ = J.T @ J
+        if np.linalg.cond(J) > MAX_CONDITION:
+            raise ValueError("the dots do not fix the tip offset: dispense at more than one A angle")
+        t = t + np.linalg.solve(JtJ, J.T @ r)
+    final = landing_points(machine, with_tool_offset(model, t), commands)
+    res = (measured - final).ravel() / UM
+    dof = max(len(res) - 3, 1)
+    sigma2 = float(res @ res / dof)
+    return TipFit(offset_um=t, covariance_um2=sigma2 * np.linalg.inv(JtJ), residual_rms_um=float(np.sqrt(sigma2)),
+                  dots=len(commands), model=with_tool_offset(model, t))
+
+
+def constant_tool_frame_error(machine: Machine, truth: ErrorModel, desired: np.ndarray,
+                              commands: np.ndarray) -> np.ndarray:
+    """(3,) the mean of the true tip position error expressed in the true tip frame (µm) over poses
+    at ``commands`` (N, 5) against ``desired`` (N, 4, 4): the constant tool-frame part of the error."""
+    tip = forward(machine, commands, truth).tool_in_workpiece()
+    error = tip[:, :3, 3] - desired[:, :3, 3]  # reached − desired, workpiece frame
+    local = np.einsum("nji,nj->ni", tip[:, :3, :3], error)  # Rᵀ (reached − desired)
+    return local.mean(axis=0) / UM

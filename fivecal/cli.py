@@ -200,6 +200,8 @@ def detect(
     detector: DetectorOption = "rrht",
     rotation_deg: Annotated[float | None, typer.Option(help="expected in-plane rotation of the grid (deg)")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
+    debug_image: Annotated[Path | None, typer.Option(
+        help="write a PNG with the candidates, the grid found (row 0 red) or the reason it was refused")] = None,
 ) -> None:
     """Run a dot-grid detector on one image and print the ordered centres with their fit quality."""
     import json
@@ -226,6 +228,10 @@ def detect(
         row_pitch_mm = plate_a.row_pitch_mm if row_pitch_mm is None else row_pitch_mm
     plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots, row_pitch_mm=row_pitch_mm)
     result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
+    if debug_image is not None:
+        from tasks.detection.debug_image import draw_detection
+
+        cv2.imwrite(str(debug_image), draw_detection(grey, result, plate))
     rc = plate.row_col()
     dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "residual_rms_px": float(q),
              "support_ratio": float(sr)}

@@ -42,7 +42,7 @@ from tasks.poses import estimate_poses
 
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
 # every cache key of the measure flow.
-VISION_CODE_VERSION = "vision-7"
+VISION_CODE_VERSION = "vision-8"
 COMMANDS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
 PRIOR_COLUMNS = tuple(f"prior_h{i}{j}" for i in range(3) for j in range(3))

@@ -20,15 +20,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tasks.detection.blobs import contour_candidates
 from tasks.detection.chaincode import filter_edges
 from tasks.detection.edges import canny_edges
 from tasks.detection.grid import order_grid
+from tasks.detection.grid_order import GridOrder
 from tasks.detection.partial_view import too_few_dots
-from tasks.detection.perspective import correct_bias, fit_homography
+from tasks.detection.perspective import correct_bias, correct_bias_local, fit_homography, project
 from tasks.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
 from tasks.detection.result import GridDetection
-from tasks.detection.rrht import RRHTParams, rrht_circles
+from tasks.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
 from tasks.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
+from tasks.detection.verify import dot_fill
 from tasks.plate import DotPlate
 
 
@@ -38,7 +41,12 @@ class FrameworkParams:
     coarse_width_px: int = 768  # without a scale hint: coarse image about this wide
     median_ksize: int = 3
     min_support: float = 0.5  # per-dot fraction of the rim that must give inlier points
+    contour_fallback: bool = True  # add region-contour candidates when the Hough circles give no grid
+    min_fill_inside: float = 0.9  # a candidate's disc must look like a dot … (tasks.detection.verify)
+    min_fill_outside: float = 0.85  # … on a clear ring of plate
     bias_iterations: int = 2
+    distorted_misfit_px: float = 0.15  # RMS misfit (px) of the plate homography, well above centre noise,
+    # beyond which lens distortion dominates and the bias is computed from local homographies
     seed: int = 0
     rrht: RRHTParams = field(default_factory=RRHTParams)
     subpixel: SubpixelParams = field(default_factory=SubpixelParams)
@@ -57,7 +65,7 @@ def cut_by_border(centres_px: np.ndarray, major_semi_axes_px: np.ndarray, gap_ra
 
 def search_scale(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float | None,
                  target_d: float, coarse_width: int) -> tuple[int, float, float]:
-    """(downsampling factor, min and max dot diameter in full-size px) for the coarse search.
+    """(downsampling factor, min and max dot diameter in full-size px) for the first coarse search.
 
     With a hint the diameter is known to within perspective foreshortening and focus changes
     (×0.55…1.5); without one, dots from 1/128 to 1/14 of the longer image side are searched.
@@ -69,6 +77,111 @@ def search_scale(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float 
         return factor, 0.55 * d, 1.5 * d
     factor = max(1, round(big / coarse_width))
     return factor, big / 128.0, big / 14.0
+
+
+LARGE_DOT_BAND = (28.0, 3.5)
+"""Second search without a scale hint: dots from 1/28 to 1/3.5 of the longer image side (a
+grid that fills a phone photograph or a webcam frame), on an image downsampled so that they
+are again 6 to 50 coarse px across; it overlaps the first band by a factor 2."""
+
+
+def search_bands(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float | None, target_d: float,
+                 coarse_width: int) -> list[tuple[int, float, float]]:
+    """The coarse searches to try in turn: (factor, d_min, d_max) px, see :func:`search_scale`.
+
+    Without a hint the first band covers dots of 1/128 to 1/14 of the longer side; when it finds
+    no grid, :data:`LARGE_DOT_BAND` is searched on a 4× coarser image.
+    """
+    first = search_scale(shape, plate, px_per_mm_hint, target_d, coarse_width)
+    if px_per_mm_hint is not None and px_per_mm_hint > 0:
+        return [first]
+    big = max(shape)
+    lo, hi = LARGE_DOT_BAND
+    return [first, (max(1, round(big / (coarse_width / 4))), big / lo, big / hi)]
+
+
+@dataclass
+class CoarseAttempt:
+    """One coarse search: circles on the coarse image, their ordering (None: too few circles)."""
+
+    factor: int
+    circles: CoarseCircles
+    order: GridOrder | None
+    reason: str
+
+    @property
+    def ok(self) -> bool:
+        return self.order is not None and self.order.ok
+
+    @property
+    def score(self) -> int:
+        """How far the search got: lattice size found (for choosing which failure to report)."""
+        if self.order is None:
+            return -1
+        return int(np.prod(self.order.lattice_shape))
+
+    def candidates_full(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centres (K, 2), diameters (K,)) of the circles found, full-size px."""
+        return coarse_to_full(self.circles.centres, self.factor), 2.0 * self.circles.axes[:, 0] * self.factor
+
+
+def coarse_search(image: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
+                  p: FrameworkParams, tm: dict, *, expected_rotation_deg: float | None, mirrored: bool,
+                  expected_centres_px: np.ndarray | None) -> CoarseAttempt:
+    """Downsample by ``factor``, find circles of d_min…d_max full-size px with the RRHT and order
+    them into the plate's grid (all on the coarse image); timings add up in ``tm``."""
+    t0 = time.perf_counter()
+    small = downsample(image, factor)
+    pre, _ = auto_gamma(small, p.median_ksize)
+    t1 = time.perf_counter()
+    tm["preprocess"] = tm.get("preprocess", 0.0) + t1 - t0
+    em = canny_edges(pre)
+    edges, _ = filter_edges(em.edges, d_min / factor, d_max / factor)
+    tm["edges"] = tm.get("edges", 0.0) + time.perf_counter() - t1
+    r_min, r_max = d_min / factor / 2, d_max / factor / 2
+    circles = CoarseCircles.empty()
+    if edges.any():
+        circles = rrht_circles(em, edges, plate.dark_dots, r_min, r_max, p.rrht, seed=p.seed, timings=tm)
+    prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
+
+    def verified(c: CoarseCircles) -> CoarseCircles:
+        fill_in, fill_out = dot_fill(pre, c.centres, c.axes, c.theta, plate.dark_dots)
+        return c.subset((fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside))
+
+    def ordered(c: CoarseCircles) -> CoarseAttempt:
+        if len(c) < 4:
+            return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
+                                                  "dot grid")
+        t3 = time.perf_counter()
+        order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=small.shape,
+                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
+        tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
+        return CoarseAttempt(factor, c, order, order.reason)
+
+    circles = verified(circles)
+    attempt = ordered(circles)
+    if attempt.ok or not p.contour_fallback:
+        return attempt
+    t4 = time.perf_counter()
+    blobs = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
+    merged = merge_candidates(circles, blobs)
+    tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t4
+    if len(merged) == len(circles):
+        return attempt
+    retry = ordered(merged)
+    return retry if retry.ok or retry.score >= attempt.score else attempt
+
+
+def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> CoarseCircles:
+    """``first`` and the circles of ``more`` that are not within half a minor axis of one of them."""
+    if len(first) == 0 or len(more) == 0:
+        return more if len(first) == 0 else first
+    d = np.linalg.norm(more.centres[:, None, :] - first.centres[None, :, :], axis=2)
+    new = (d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])).all(axis=1)
+    add = more.subset(new)
+    return CoarseCircles(np.concatenate([first.centres, add.centres]), np.concatenate([first.axes, add.axes]),
+                         np.concatenate([first.theta, add.theta]), np.concatenate([first.votes, add.votes]),
+                         np.concatenate([first.rim_ratio, add.rim_ratio]))
 
 
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
@@ -98,40 +211,29 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
                                      timings_s=tm, **kw)
 
     image = check_image(image)
-    factor, d_min, d_max = search_scale(image.shape, plate, px_per_mm_hint, p.coarse_target_diameter_px,
-                                        p.coarse_width_px)
-    t0 = time.perf_counter()
-    small = downsample(image, factor)
-    pre, _ = auto_gamma(small, p.median_ksize)
-    t1 = time.perf_counter()
-    tm["preprocess"] = t1 - t0
-    em = canny_edges(pre)
-    edges, _ = filter_edges(em.edges, d_min / factor, d_max / factor)
-    t2 = time.perf_counter()
-    tm["edges"] = t2 - t1
-    if not edges.any():
-        return fail("no edges that could be dot rims (blank, saturated or featureless image)")
-    circles = rrht_circles(em, edges, plate.dark_dots, d_min / factor / 2, d_max / factor / 2,
-                           p.rrht, seed=p.seed, timings=tm)
-    if len(circles) < 4:
-        return fail(f"found {len(circles)} circular targets, not a {plate.rows}x{plate.cols} dot grid",
-                    n_candidates=len(circles))
-    t3 = time.perf_counter()
-    prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
-    order = order_grid(circles.centres, plate, sizes=2 * circles.axes[:, 0], image_shape=small.shape,
-                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
-    tm["ordering"] = time.perf_counter() - t3
-    if not order.ok:
-        return fail(order.reason, n_candidates=len(circles))
+    attempts: list[CoarseAttempt] = []
+    for factor, d_min, d_max in search_bands(image.shape, plate, px_per_mm_hint, p.coarse_target_diameter_px,
+                                             p.coarse_width_px):
+        attempts.append(coarse_search(image, plate, factor, d_min, d_max, p, tm,
+                                      expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
+                                      expected_centres_px=expected_centres_px))
+        if attempts[-1].ok or expected_centres_px is not None:  # a prior fixes the scale: one band
+            break
+    attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.score)
+    circles, order, factor = attempt.circles, attempt.order, attempt.factor
+    cand_uv, cand_d = attempt.candidates_full()
+    debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}
+    if not attempt.ok:
+        return fail(attempt.reason, **debug)
     rc = plate.row_col()
     found = order.index >= 0
     gap_ratio = plate.pitch_range_mm[0] / plate.dot_diameter_mm - 1.0
-    if prior is not None:  # a view that may be partial leaves out the dots the border cuts
+    if expected_centres_px is not None:  # a view that may be partial leaves out the dots the border cuts
         found[found] = ~cut_by_border(coarse_to_full(circles.centres[order.index[found]], factor),
                                       circles.axes[order.index[found], 0] * factor, gap_ratio, image.shape)
     too_few = too_few_dots(int(found.sum()), n)
     if too_few:
-        return fail(too_few, n_candidates=len(circles))
+        return fail(too_few, **debug)
     idx = order.index[found]
     c0 = coarse_to_full(circles.centres[idx], factor)
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
@@ -143,11 +245,14 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         k = int(np.flatnonzero(bad)[0])
         r, c = rc[found][k]
         return fail(f"rim fit failed for {int(bad.sum())} dot(s), first at row {r} col {c} "
-                    f"(support {fits.support[k]:.2f})", n_candidates=len(circles))
+                    f"(support {fits.support[k]:.2f})", **debug)
     t5 = time.perf_counter()
     xy = plate.dot_centres_mm()[found, :2]
     if correct_perspective:
         centres, hom = correct_bias(fits.centres, xy, plate.dot_diameter_mm / 2, p.bias_iterations)
+        misfit = np.sqrt(np.mean(np.sum((project(hom, xy) - centres) ** 2, axis=1)))
+        if misfit > p.distorted_misfit_px:  # lens distortion: one homography per neighbourhood
+            centres = correct_bias_local(fits.centres, xy, plate.dot_diameter_mm / 2, rc[found], p.bias_iterations)
     else:
         centres, hom = fits.centres.copy(), fit_homography(xy, fits.centres)
     tm["perspective"] = time.perf_counter() - t5
@@ -162,5 +267,5 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         support_ratio=per_dot(fits.support), elapsed_s=time.perf_counter() - t_start,
         ellipse_centres=per_dot(fits.centres), axes_px=per_dot(fits.axes), edge_sigma_px=per_dot(fits.edge_sigma_px),
         rotation_deg=order.rotation_deg,
-        orientation_ambiguous=order.ambiguous, homography=hom, n_candidates=len(circles), timings_s=tm,
+        orientation_ambiguous=order.ambiguous, homography=hom, timings_s=tm, **debug,
     )

@@ -27,6 +27,9 @@ class GridDetection:
     on screen from +u, degrees. orientation_ambiguous: True when a symmetric grid's orientation
     was chosen by convention (closest to 0°) because no expected rotation was given.
     homography: (3, 3) plate (x, y) mm → image px fitted to the centres, or None.
+    n_candidates: circles found before ordering; candidates_px (K, 2) and
+    candidate_diameters_px (K,) are where and how large (full-size px), for a debug drawing
+    (None when the detector does not report them).
     timings_s: seconds per stage; elapsed_s: total seconds inside the detector.
     """
 
@@ -44,6 +47,8 @@ class GridDetection:
     orientation_ambiguous: bool = False
     homography: np.ndarray | None = None
     n_candidates: int = 0
+    candidates_px: np.ndarray | None = None
+    candidate_diameters_px: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property

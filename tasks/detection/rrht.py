@@ -62,6 +62,11 @@ class CoarseCircles:
     def __len__(self) -> int:
         return len(self.centres)
 
+    def subset(self, keep: np.ndarray) -> CoarseCircles:
+        """The circles selected by a (K,) bool mask or an index array."""
+        return CoarseCircles(self.centres[keep], self.axes[keep], self.theta[keep], self.votes[keep],
+                             self.rim_ratio[keep])
+
 
 def _padded(dirs: np.ndarray, pad: int) -> tuple[np.ndarray, int]:
     """Direction-code map padded with 255 (no edge) so that ray lookups need no bounds checks."""

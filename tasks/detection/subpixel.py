@@ -356,8 +356,8 @@ def fit_gain_field(prof: np.ndarray, t: np.ndarray, ok: np.ndarray, cen: np.ndar
     w = v[use]
     keep = np.ones(len(lv), bool)
     for _ in range(2):
-        sw = np.sqrt(w * keep)
-        coef = np.linalg.lstsq(a * sw[:, None], lv * sw, rcond=None)[0]
+        wk = w * keep  # normal equations: (N, ≤7) with normalised columns, well conditioned
+        coef = np.linalg.solve(a.T @ (a * wk[:, None]) + 1e-12 * np.eye(a.shape[1]), a.T @ (wk * lv))
         r = lv - a @ coef
         keep = np.abs(r) < 4.0 * (1.4826 * np.median(np.abs(r[keep])) + 1e-12)
     return GainField(np.pad(coef[2:], (0, 7 - len(coef))), origin, scale)

@@ -1,0 +1,133 @@
+"""Benchmark: the detectors on the renderer's stress set (tasks.detection.stress), same images, same process.
+
+    .venv/bin/python bench/bench_stress.py                 # all cases, 3 timed repeats
+    .venv/bin/python bench/bench_stress.py --seeds 3       # each case with 3 seeds (other noise, clutter)
+    .venv/bin/python bench/bench_stress.py --case fisheye  # one case (repeatable)
+
+Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
+then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
+photograph) is rendered once and handed to every detector in turn, interleaved over the repeats;
+the median wall time is kept. Detectors:
+
+* rrht: ``detect_grid(image, plate, "rrht")`` (no hint, no rotation prior, as ``fivecal detect``);
+* blob: our findCirclesGrid baseline (a SimpleBlobDetector tuned to the polarity and to dots of
+  1/128…1/14 of the image side); hough: our HoughCircles baseline;
+* cv2 / cv2+clustering: ``cv2.findCirclesGrid(image, (cols, rows), CALIB_CB_SYMMETRIC_GRID
+  [| CALIB_CB_CLUSTERING])`` with OpenCV's default blob detector, the image inverted for light
+  dots (what a user of OpenCV would run).
+
+A grid counts as found when the detector says so and each true dot centre has exactly one
+detected centre within a quarter of the dot size (labels are not compared: OpenCV's order is its
+own); the centre error is that distance. Prints one row per image, then per detector the found
+rate, the median and worst centre error, the median time, and the time and error ratios against
+cv2.findCirclesGrid on the images both found.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tasks.detection import detect_grid
+from tasks.detection.stress import STRESS_CASES, render_stress_case
+from tasks.plate import DotPlate
+
+DETECTORS = ("rrht", "blob", "hough", "cv2", "cv2+clustering")
+
+
+def run_opencv(image: np.ndarray, plate: DotPlate, clustering: bool) -> np.ndarray | None:
+    """cv2.findCirclesGrid with OpenCV's default blob detector: (rows*cols, 2) px or None."""
+    img = image if plate.dark_dots else cv2.bitwise_not(image)
+    flags = cv2.CALIB_CB_SYMMETRIC_GRID | (cv2.CALIB_CB_CLUSTERING if clustering else 0)
+    ok, c = cv2.findCirclesGrid(img, (plate.cols, plate.rows), flags=flags)
+    return c.reshape(-1, 2).astype(float) if ok and c is not None else None
+
+
+def run(name: str, image: np.ndarray, plate: DotPlate) -> np.ndarray | None:
+    if name in ("cv2", "cv2+clustering"):
+        return run_opencv(image, plate, name == "cv2+clustering")
+    det = detect_grid(image, plate, name)
+    return det.centres if det.ok else None
+
+
+def match_errors(found: np.ndarray | None, truth: np.ndarray, dot_px: float) -> np.ndarray | None:
+    """Distance (px) from each true centre to its detected one, or None unless one-to-one."""
+    if found is None or len(found) != len(truth) or not np.isfinite(found).all():
+        return None
+    d, j = cKDTree(found).query(truth)
+    if len(np.unique(j)) != len(truth) or d.max() > 0.25 * dot_px:
+        return None
+    return d
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--seeds", type=int, default=1, help="renders per case (seeds case.seed, +100, +200 …)")
+    ap.add_argument("--case", action="append", help="only these cases (repeatable)")
+    args = ap.parse_args()
+    cases = [c for c in STRESS_CASES if not args.case or c.name in args.case]
+    print(f"cv2 {cv2.__version__}, cv2 threads {cv2.getNumThreads()}; {len(cases)} cases × {args.seeds} seeds, "
+          f"{args.repeat} repeats")
+    rows = []
+    warm = False
+    for case in cases:
+        for s in range(args.seeds):
+            c = replace(case, seed=case.seed + 100 * s)
+            image, truth = render_stress_case(c)
+            plate = replace(c.plate, dark_dots=c.dark_dots)
+            if not warm:  # lazy initialisation and compiled code outside the timings
+                for d in DETECTORS:
+                    run(d, image, plate)
+                warm = True
+            times = {d: [] for d in DETECTORS}
+            out = {}
+            for _ in range(args.repeat):
+                for d in DETECTORS:
+                    t0 = time.perf_counter()
+                    out[d] = run(d, image, plate)
+                    times[d].append(time.perf_counter() - t0)
+            row = {"case": c.name, "seed": c.seed, "size": f"{c.width}x{c.height}", "dot_px": c.dot_px}
+            line = f"{c.name:17s} s{c.seed:<4d}"
+            for d in DETECTORS:
+                err = match_errors(out[d], truth, c.dot_px)
+                row[d + "_ms"] = 1e3 * statistics.median(times[d])
+                row[d + "_err"] = err
+                line += f" | {d} {'ok ' if err is not None else '-- '}{row[d + '_ms']:6.0f} ms"
+                line += f" {np.median(err):.3f}px" if err is not None else "        "
+            rows.append(row)
+            print(line, flush=True)
+    print()
+    print(f"{'detector':15s} {'found':>7s} {'median err px':>14s} {'worst err px':>13s} {'median ms':>10s}")
+    for d in DETECTORS:
+        errs = [r[d + "_err"] for r in rows if r[d + "_err"] is not None]
+        med = statistics.median([float(np.median(e)) for e in errs]) if errs else float("nan")
+        worst = max(float(e.max()) for e in errs) if errs else float("nan")
+        print(f"{d:15s} {len(errs):3d}/{len(rows):<3d} {med:14.3f} {worst:13.3f} "
+              f"{statistics.median(r[d + '_ms'] for r in rows):10.1f}")
+    for ref in ("cv2", "cv2+clustering", "blob"):
+        both = [r for r in rows if r["rrht_err"] is not None and r[ref + "_err"] is not None]
+        if both:
+            sp = statistics.mean(r[ref + "_ms"] for r in both) / statistics.mean(r["rrht_ms"] for r in both)
+            er = (statistics.median(float(np.median(r["rrht_err"])) for r in both)
+                  / statistics.median(float(np.median(r[ref + "_err"])) for r in both))
+            print(f"on the {len(both)} images both found: {ref} time / rrht time {sp:.2f}x, "
+                  f"rrht median error / {ref} median error {er:.2f}")
+    big = [r for r in rows if r["size"] == "3024x4032"]
+    if big:
+        print(f"12 MP photographs: rrht median {statistics.median(r['rrht_ms'] for r in big):.0f} ms, "
+              f"worst {max(r['rrht_ms'] for r in big):.0f} ms (goal < 500 ms)")
+
+
+if __name__ == "__main__":
+    main()

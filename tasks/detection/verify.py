@@ -1,0 +1,61 @@
+"""Appearance test of coarse circle candidates: is it a filled dot on a clear surround?
+
+A rim found by the Hough search can be an arc of clutter (a letter, the corner of a box, a
+shadow edge): the votes only say that edge pixels lie on a circle. A printed dot is also a
+uniform disc of its own grey level on a uniform ring of the plate's, for at least half a dot
+radius around it (a plate's gap between dots is at least its radius, pitch ≥ 1.5 diameters).
+Grey levels are sampled (bilinear) on ellipses scaled from each candidate's own: inside at
+0–0.65 of the axes, outside at 1.3 and 1.5; the threshold is halfway between the medians of the
+two. Units: px of the image the candidates were found on; angles rad from +u towards +v.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import cv2
+import numpy as np
+
+INNER_SCALES = (0.0, 0.25, 0.45, 0.65)
+OUTER_SCALES = (1.3, 1.5)
+N_ANGLES = 24
+
+
+def dot_fill(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
+             dark_dots: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(inside, outside) fractions (K,) of samples on the dot's side of the threshold inside the
+    candidate ellipses (centres (K, 2), semi-axes (K, 2), angle (K,)) and on the plate's side
+    outside them; samples off the image are left out (a fraction is 1 without samples)."""
+    if len(centres) == 0:
+        return np.zeros(0), np.zeros(0)
+    ang = np.arange(N_ANGLES) * (2 * np.pi / N_ANGLES)
+    scales = np.array(INNER_SCALES + OUTER_SCALES)
+    ca, sa = np.cos(ang), np.sin(ang)
+    ct, st = np.cos(theta)[:, None, None], np.sin(theta)[:, None, None]
+    ex = axes[:, 0, None, None] * scales[None, :, None] * ca[None, None, :]  # (K, S, A) ellipse frame
+    ey = axes[:, 1, None, None] * scales[None, :, None] * sa[None, None, :]
+    u = (centres[:, 0, None, None] + ct * ex - st * ey).astype(np.float32)
+    v = (centres[:, 1, None, None] + st * ex + ct * ey).astype(np.float32)
+    h, w = image.shape
+    inside_img = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    k, s, a = u.shape
+    g = cv2.remap(image, u.reshape(k, s * a), v.reshape(k, s * a), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE).reshape(k, s, a).astype(float)
+    n_in = len(INNER_SCALES)
+    g_in = np.where(inside_img[:, :n_in], g[:, :n_in], np.nan).reshape(k, -1)
+    g_out = np.where(inside_img[:, n_in:], g[:, n_in:], np.nan).reshape(k, -1)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a candidate with no sample in the image
+        m_in = np.nanmedian(g_in, axis=1)
+        m_out = np.nanmedian(g_out, axis=1)
+        thr = 0.5 * (m_in + m_out)[:, None]
+        sign = 1.0 if dark_dots else -1.0
+        dot_side = sign * (thr - g_in) > 0
+        plate_side = sign * (g_out - thr) > 0
+        n_i = np.isfinite(g_in).sum(axis=1)
+        n_o = np.isfinite(g_out).sum(axis=1)
+        fill_in = np.where(n_i > 0, dot_side.sum(axis=1) / np.maximum(n_i, 1), 1.0)
+        fill_out = np.where(n_o > 0, plate_side.sum(axis=1) / np.maximum(n_o, 1), 1.0)
+    polarity_ok = sign * (m_out - m_in) > 0
+    polarity_ok |= ~(np.isfinite(m_in) & np.isfinite(m_out))
+    return np.where(polarity_ok, fill_in, 0.0), np.where(polarity_ok, fill_out, 0.0)

@@ -1,0 +1,131 @@
+"""The RRHT detector on the renderer's stress set (tasks.detection.stress): what photographs add.
+
+Each case is rendered with exact ground truth (projected 3-D dot centres); the detector gets no
+scale hint and no rotation prior, as ``fivecal detect`` runs it. Labels are compared up to the
+grid's symmetry (without a prior the orientation is a convention). The 12 MP cases are in
+bench/bench_stress.py (a render takes seconds); here the same scenes at a quarter of the pixels.
+"""
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from fivecal.cli import app
+from tasks.detection import detect_grid
+from tasks.detection.debug_image import BANNER_FAIL, BANNER_OK, draw_detection
+from tasks.detection.stress import STRESS_CASES, render_stress_case
+
+CASES = {c.name: c for c in STRESS_CASES}
+SMALL_PHONE = replace(CASES["phone-12mp"], name="phone-3mp", width=1512, height=2016, dot_px=75.0)
+LARGE_DOTS = replace(CASES["phone-400px"], name="phone-200px", width=1512, height=2016, dot_px=200.0)
+
+
+def _plate(case):
+    return replace(case.plate, dark_dots=case.dark_dots)
+
+
+def _errors_up_to_symmetry(plate, centres, truth):
+    """Centre errors (px) under the grid symmetry (a flip of rows and/or columns) that fits best."""
+    g = centres.reshape(plate.rows, plate.cols, 2)
+    best = None
+    for fr in (False, True):
+        for fc in (False, True):
+            c = g[::-1] if fr else g
+            c = c[:, ::-1] if fc else c
+            e = np.linalg.norm(c.reshape(-1, 2) - truth, axis=1)
+            if best is None or np.median(e) < np.median(best):
+                best = e
+    return best
+
+
+@pytest.mark.parametrize(("case", "median_px", "max_px"), [
+    (CASES["fisheye"], 0.3, 0.8),
+    (CASES["fisheye-light"], 0.3, 0.8),
+    (CASES["distant-15px"], 0.05, 0.1),
+    (CASES["distant-8px"], 0.05, 0.1),
+    (CASES["tilt-50"], 0.05, 0.1),
+    (CASES["uneven-light"], 0.05, 0.1),
+    (CASES["light-tilt"], 0.05, 0.1),
+    (SMALL_PHONE, 0.05, 0.1),
+    (LARGE_DOTS, 0.05, 0.1),
+], ids=lambda v: getattr(v, "name", None))
+def test_stress_case_is_found_and_labelled(case, median_px, max_px):
+    image, truth = render_stress_case(case)
+    det = detect_grid(image, _plate(case), "rrht")
+    assert det.ok, det.reason
+    err = _errors_up_to_symmetry(_plate(case), det.centres, truth)
+    assert err.max() < 0.25 * case.dot_px  # every dot labelled as the right one
+    assert np.median(err) < median_px and err.max() < max_px
+
+
+def test_a_grid_of_other_dimensions_is_refused_with_a_reason():
+    case = CASES["tilt-50"]
+    image, _ = render_stress_case(case)
+    fewer = detect_grid(image, replace(_plate(case), rows=3), "rrht")
+    more = detect_grid(image, replace(_plate(case), rows=5), "rrht")
+    assert not fewer.ok and "extra dots" in fewer.reason
+    assert not more.ok and "missing dots" in more.reason
+
+
+def test_a_hidden_dot_is_refused_not_guessed():
+    case = CASES["uneven-light"]
+    image, truth = render_stress_case(case)
+    u, v = np.round(truth[5]).astype(int)
+    r = int(case.dot_px * 0.7)
+    paper = float(np.median(image[v - r : v + r, u - r : u + r]))  # the dot covers less than half the box
+    image = image.copy()
+    cv2.circle(image, (int(u), int(v)), int(0.65 * case.dot_px), paper, -1)  # a label stuck over dot 5
+    det = detect_grid(image, _plate(case), "rrht")
+    assert not det.ok and "missing dots" in det.reason
+
+
+def test_debug_image_shows_the_verdict_and_the_cli_writes_it(tmp_path):
+    case = CASES["fisheye"]
+    image, _ = render_stress_case(case)
+    plate = _plate(case)
+    ok = draw_detection(image, detect_grid(image, plate, "rrht"), plate)
+    refused = draw_detection(image, detect_grid(image, replace(plate, rows=5), "rrht"), plate)
+    assert max(ok.shape[:2]) == 800  # small images are enlarged to be read
+    assert tuple(ok[2, 2]) == BANNER_OK and tuple(refused[2, 2]) == BANNER_FAIL
+    path = tmp_path / "fisheye.jpg"
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))  # a colour JPEG, as a user has
+    out = tmp_path / "debug.png"
+    result = CliRunner().invoke(app, ["detect", str(path), "--rows", "4", "--cols", "3", "--pitch-mm", "6",
+                                      "--diameter-mm", "4", "--debug-image", str(out)])
+    assert result.exit_code == 0, result.output
+    assert cv2.imread(str(out)).shape[2] == 3
+
+
+def test_region_contours_alone_find_the_grid():
+    """The fallback candidates (tasks.detection.blobs) on their own: no Hough circle is accepted."""
+    from tasks.detection.framework import FrameworkParams, detect_rrht
+    from tasks.detection.rrht import RRHTParams
+
+    case = CASES["fisheye"]
+    image, truth = render_stress_case(case)
+    det = detect_rrht(image, _plate(case), params=FrameworkParams(rrht=RRHTParams(min_rim_ratio=2.0)))
+    assert det.ok, det.reason
+    err = _errors_up_to_symmetry(_plate(case), det.centres, truth)
+    assert np.median(err) < 0.3 and err.max() < 0.8
+
+
+def test_local_homographies_match_opencv_on_exact_points():
+    from tasks.detection.perspective import correct_bias, correct_bias_local, fit_homography, local_homographies
+
+    rng = np.random.default_rng(3)
+    h = np.array([[40.0, 3.0, 300.0], [-2.0, 38.0, 250.0], [1e-3, -2e-3, 1.0]])
+    xy = np.stack(np.meshgrid(np.arange(4) * 6.0, np.arange(3) * 6.0), axis=-1).reshape(-1, 2)
+    uv = xy @ h[:, :2].T + h[:, 2]
+    uv = uv[:, :2] / uv[:, 2:]
+    member = rng.random((5, len(xy))) < 0.7
+    member[:, :4] = True
+    hs = local_homographies(xy, uv, member)
+    assert np.allclose(hs, h / h[2, 2], rtol=1e-6, atol=1e-9)
+    assert np.allclose(fit_homography(xy, uv), hs[0], rtol=1e-4, atol=1e-7)  # OpenCV is less exact
+    # without distortion, local and global bias corrections agree
+    rc = np.stack(np.meshgrid(np.arange(4), np.arange(3)), axis=-1).reshape(-1, 2)[:, ::-1]
+    glob, _ = correct_bias(uv, xy, 2.0)
+    assert np.abs(correct_bias_local(uv, xy, 2.0, rc) - glob).max() < 1e-4  # px

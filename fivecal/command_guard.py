@@ -5,8 +5,8 @@ on Ctrl-C / SIGTERM — never a traceback, never a process left behind.
 :func:`guarded`, which
 
 - turns an unexpected exception into ``error: <command> failed: <Type>: <message>`` on stderr and
-  exit 2 (``FIVECAL_DEBUG=1`` re-raises it, traceback and all); typer's and click's own exits
-  pass through;
+  exit 2, and keeps Prefect from logging tracebacks meanwhile (``FIVECAL_DEBUG=1`` re-raises
+  the exception and leaves Prefect's logs whole); typer's and click's own exits pass through;
 - makes SIGTERM end the command as Ctrl-C does: a KeyboardInterrupt in the main thread (so that
   ``finally`` blocks run: a writer removes its staging folder), then the temporary Prefect servers
   are stopped and the process exits at once (``os._exit``: no waiting for threads busy with an
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import os
 import signal
 import sys
@@ -61,18 +62,11 @@ def guarded(command: Callable) -> Callable:
 
     @functools.wraps(command)
     def run(*args: Any, **kwargs: Any) -> Any:
-        with _signals_end_the_command():
+        with _signals_end_the_command(), _prefect_logs_without_tracebacks():
             try:
                 return command(*args, **kwargs)
             except _PASS_THROUGH:
                 raise
-            except KeyboardInterrupt:
-                signum = _received[-1] if _received else signal.SIGINT
-                typer.echo(f"interrupted ({signal.Signals(signum).name}): stopped; every written partition of the "
-                           "results lake is whole", err=True)
-                if _received:  # a real signal: end now, as a kill would, without waiting for busy threads
-                    _stop_now(signum)
-                raise typer.Exit(_EXIT_CODES.get(signum, 130)) from None
             except Exception as e:
                 if os.environ.get(DEBUG_ENV):
                     raise
@@ -80,8 +74,27 @@ def guarded(command: Callable) -> Callable:
                 typer.echo(f"error: {name} failed: {type(e).__name__}: {e}\n(the results lake keeps every partition "
                            f"whole; {DEBUG_ENV}=1 shows the traceback)", err=True)
                 raise typer.Exit(2) from None
+            except BaseException as e:
+                if not _is_interrupt(e):
+                    raise
+                signum = _received[-1] if _received else signal.SIGINT
+                typer.echo(f"interrupted ({signal.Signals(signum).name}): stopped; every written partition of the "
+                           "results lake is whole", err=True)
+                if _received:  # a real signal: end now, as a kill would, without waiting for busy threads
+                    _stop_now(signum)
+                raise typer.Exit(_EXIT_CODES.get(signum, 130)) from None
 
     return run
+
+
+def _is_interrupt(e: BaseException) -> bool:
+    """Ctrl-C, or the exception Prefect's own SIGTERM handler raises while a flow runs (recognised
+    by name: importing prefect here would slow every command down by a second)."""
+    if type(e).__name__ == "TerminationSignal" and type(e).__module__.startswith("prefect"):
+        if not _received:
+            _received.append(signal.SIGTERM)
+        return True
+    return isinstance(e, KeyboardInterrupt)
 
 
 def _on_signal(signum: int, frame: Any) -> None:
@@ -106,6 +119,29 @@ def _stop_now(signum: int) -> None:
         with contextlib.suppress(OSError):
             process.terminate()
     os._exit(_EXIT_CODES.get(signum, 130))
+
+
+@contextlib.contextmanager
+def _prefect_logs_without_tracebacks() -> Iterator[None]:
+    """Prefect logs a failed task or flow with its whole traceback (hundreds of lines); the command
+    reports the error in one line instead. Unless $FIVECAL_DEBUG is set, records of Prefect's
+    loggers are made without their traceback while the command runs."""
+    if os.environ.get(DEBUG_ENV):
+        yield
+        return
+    previous = logging.getLogRecordFactory()
+
+    def factory(name, level, fn, lno, msg, args, exc_info, func=None, sinfo=None, **kwargs):
+        if exc_info and name.startswith("prefect"):
+            exc_info = None
+            msg = f"{msg} (traceback hidden; {DEBUG_ENV}=1 shows it)"
+        return previous(name, level, fn, lno, msg, args, exc_info, func, sinfo, **kwargs)
+
+    logging.setLogRecordFactory(factory)
+    try:
+        yield
+    finally:
+        logging.setLogRecordFactory(previous)
 
 
 @contextlib.contextmanager

@@ -49,7 +49,7 @@ from tasks.error_model import ErrorModel
 from tasks.identification.measurements import assemble_measurements, capture_context
 from tasks.identification.pige_identification import null_space_sentences
 from tasks.identification.uncertainty import expected_tip_errors
-from tasks.ingest import load_campaign_metadata
+from tasks.ingest import CampaignError, load_campaign_metadata
 from tasks.machine import CALIBRATION_STAGE
 from tasks.model_ladder import append_step, compensated_tip_errors, ladder_step
 from tasks.report import ReportData
@@ -140,6 +140,10 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     truth = read_truth(folder)[1] if simulated else None
 
     measurements = assemble_measurements(images, pose_table)
+    if not len(measurements.stage("validation", camera=VALIDATION_CAMERA)):  # before minutes of fitting
+        raise CampaignError(f"{folder}: no validation image of {VALIDATION_CAMERA} gave a pose (see the status "
+                            "columns of the images and poses tables): calibrate needs at least one to compensate "
+                            "and verify")
     logger.info(f"identifying: {len(measurements)} poses ({(measurements.table.stage == 'pige').sum()} five-axis)")
     ident = identify_task.submit(machine, measurements, truth, base)
     result = ident.result()

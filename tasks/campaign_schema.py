@@ -133,11 +133,19 @@ def check_views(meta: Mapping) -> None:
 
 
 def check_machine(meta: Mapping) -> None:
-    """``machine``: axes X, Y, Z (linear, mm) and A, C (rotary, deg) with kind, direction (non-zero),
+    """``machine``: a name; axes X, Y, Z (linear, mm) and A, C (rotary, deg) with kind, direction (non-zero),
     home_position_mm and stroke [low, high] (low < high); tool_chain and workpiece_chain listing
     each axis once; attachments {name: {link (an axis or "base"), position_mm, optional z_axis,
     x_axis (non-zero, not parallel)}} including the tip and every viewing camera and its plates."""
     machine = _object(meta, "machine", "")
+    if not isinstance(machine.get("name"), str):
+        raise _fault("machine.name", "must be a string", machine.get("name"))
+    for key in ("tip", "workpiece"):
+        if key in machine and not isinstance(machine[key], str):
+            raise _fault(f"machine.{key}", "must be the name of an attachment", machine[key])
+    notes = machine.get("notes", [])
+    if not isinstance(notes, list) or not all(isinstance(n, str) for n in notes):
+        raise _fault("machine.notes", "must be a list of strings", notes)
     axes = _object(machine, "axes", "machine.")
     for axis, kind in AXES.items():
         path = f"machine.axes.{axis}"
@@ -165,7 +173,8 @@ def check_machine(meta: Mapping) -> None:
         path = f"machine.attachments.{name}"
         if not isinstance(att, dict):
             raise _fault(path, "must be an object", att)
-        if att.get("link") != "base" and att.get("link") not in AXES:
+        link = att.get("link")
+        if not isinstance(link, str) or (link != "base" and link not in AXES):
             raise _fault(f"{path}.link", "must be an axis name or 'base'", att.get("link"))
         _vector(att, "position_mm", path)
         _vector(att, "z_axis", path, required=False, nonzero=True)

@@ -183,9 +183,9 @@ def load_campaign_metadata(folder: str | Path) -> dict:
     try:
         text = read_campaign_file(folder, METADATA_FILE, MAX_METADATA_BYTES).decode("utf-8")
     except FileFault as e:
-        what = "campaign metadata file missing" if e.code == "missing_file" else f"cannot read campaign metadata " \
-                                                                                 f"({e.detail})"
-        raise CampaignError(f"{path}: {what}") from None
+        if e.code == "missing_file":
+            raise CampaignError(f"{path}: campaign metadata file missing") from None
+        raise CampaignError(f"{path}: cannot read campaign metadata ({e.detail})") from None
     except UnicodeDecodeError as e:
         raise CampaignError(f"{path}: cannot read campaign metadata ({e})") from e
     try:

@@ -163,3 +163,33 @@ def test_the_guard_is_installed_in_prefects_server_module_by_the_flows_package()
 
     assert isinstance(server.subprocess, server_guard._GuardedSubprocess)
     assert server.subprocess.TimeoutExpired is subprocess.TimeoutExpired  # everything else unchanged
+
+
+def test_prefect_log_records_lose_their_traceback_unless_debugging(monkeypatch):
+    import logging
+
+    monkeypatch.delenv(DEBUG_ENV, raising=False)
+    seen = []
+    app = GuardedTyper()
+
+    @app.command()
+    def log() -> None:
+        try:
+            [][1]
+        except IndexError:
+            for name in ("prefect.flow_runs", "fivecal.other"):
+                seen.append(logging.getLogger(name).makeRecord(name, logging.ERROR, "f", 1, "failed", (),
+                                                               sys.exc_info()))
+
+    @app.command()
+    def other() -> None:
+        pass
+
+    assert runner.invoke(app, ["log"]).exit_code == 0
+    prefect_record, other_record = seen
+    assert prefect_record.exc_info is None and prefect_record.msg.endswith(f"{DEBUG_ENV}=1 shows it)")
+    assert other_record.exc_info is not None
+    monkeypatch.setenv(DEBUG_ENV, "1")
+    seen.clear()
+    runner.invoke(app, ["log"])
+    assert seen[0].exc_info is not None

@@ -99,3 +99,22 @@ def test_campaign_level_fault_fails_the_flow_and_writes_nothing(prefect_harness,
     with pytest.raises(CampaignError, match=r"manifest\.csv: no image rows \(empty campaign\)"):
         run_ingest(campaign, root)
     assert not root.exists()
+
+
+def test_mostly_faulty_images_fail_the_flow_and_keep_the_previous_partition(prefect_harness, campaign_copy,
+                                                                            tmp_path):
+    import cv2
+
+    campaign = campaign_copy("mostly")
+    root = tmp_path / "results"
+    run(campaign, root)
+    part = root / "images" / "campaign_id=mostly" / "part-0.parquet"
+    before = part.read_bytes()
+    paths = pd.read_csv(campaign / "manifest.csv", dtype=str)["path"]
+    for p in paths.iloc[:10]:  # 10 of 18 images re-encoded as JPEG under their .png names
+        image = cv2.imread(str(campaign / p), cv2.IMREAD_UNCHANGED)
+        (campaign / p).write_bytes(cv2.imencode(".jpg", image)[1].tobytes())
+    with pytest.raises(CampaignError, match=r"10 of 18 rows are faulty \(campaign mostly: 18 images, 8 ok, 10 faults "
+                                            r"\(wrong_format 10\)\), more than the 50%"):
+        run_ingest(campaign, root)
+    assert part.read_bytes() == before

@@ -3,18 +3,23 @@
 # Usage: docs/examples/context_walkthrough.sh WORKDIR SEED...   (from the repository root, after make setup)
 # Per seed: a clean campaign, a hidden 20 µm/h time-driven thermal drift on X, an 8 µm backlash on Z and
 # the user family docs/examples/cross_backlash.py (8 µm along Y by X's approach), small plan and images.
-# Each hidden-effect campaign is diagnosed, then calibrated with the diagnosis' best spec; the user
+# Each hidden-effect campaign is diagnosed, then calibrated with the diagnosis' spec: the accepted one
+# ("next: ..."), or, when nothing is accepted, its best candidate ("the best candidate, `SPEC`"); the user
 # campaign is diagnosed first without its module (what someone without the class gets), then with it.
-# The last line prints docs/examples/context_summary.py's table.
+# A step whose log ends with its run time is not run again. The last line prints
+# docs/examples/context_summary.py's table.
 set -u
 W=$1; shift
 C=$W/campaigns; R=$W/results; REP=$W/reports; L=$W/logs
 mkdir -p "$C" "$L"
 FC=".venv/bin/fivecal"
 MODULE=docs/examples/cross_backlash.py
-best() { sed -n "s/^next: fivecal calibrate .* --add-effect '\(.*\)'$/\1/p" "$1"; }
+best() {
+  local accepted; accepted=$(sed -n "s/^next: fivecal calibrate .* --add-effect '\(.*\)'$/\1/p" "$1")
+  [ -n "$accepted" ] && echo "$accepted" || sed -n 's/^Nothing significant: the best candidate, `\([^`]*\)`.*/\1/p' "$1" | head -1
+}
 sim() { local out=$1; shift; [ -e "$C/$out/manifest.csv" ] || nice -n 10 $FC simulate "$C/$out" --size small --plan small "$@" > "$L/$out-simulate.log" 2>&1; }
-run() { local log=$1; shift; nice -n 10 /usr/bin/time -f "%e s" $FC "$@" --results "$R" --reports "$REP" > "$L/$log.log" 2>&1; }
+run() { local log=$1; shift; tail -1 "$L/$log.log" 2>/dev/null | grep -q '^[0-9.]* s$' && return; nice -n 10 /usr/bin/time -f "%e s" $FC "$@" --results "$R" --reports "$REP" > "$L/$log.log" 2>&1; }
 ids=()
 for seed in "$@"; do
   sim clean-s$seed --seed $seed

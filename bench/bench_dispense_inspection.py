@@ -32,6 +32,7 @@ from tasks.dispensing.inspection import Region, classify, inspect_ring_image, lo
 PX_PER_MM = 1 / 0.045  # camera 1 at full resolution, 300 mm away
 CROP = 128
 CONTRASTS = (25.0, 40.0, 60.0)
+FEATURES = ("area_px2", "circularity", "nsd_r", "cov_i")
 BLURS = (0.8, 1.2, 1.6)
 GAINS = (20.0, 8.0)  # electrons per DN: shot noise grows as the gain falls
 
@@ -102,6 +103,7 @@ def run(n_dots: int, seed: int, defect_rate: float) -> pd.DataFrame:
         rec["ours_s"] = time.perf_counter() - t0
         rec["ours_qualified"], rec["ours_reason"] = ours.qualified, ours.reason
         if ours.dot is not None:
+            rec.update({f"ours_{f}": getattr(ours.dot, f) for f in FEATURES})
             rec.update(ours_ex=ours.dot.x_px - true_px[0], ours_ey=ours.dot.y_px - true_px[1],
                        ours_d=ours.dot.diameter_px / true_d - 1, ours_nsd=ours.dot.nsd_r - dot.nsd_r())
         t0 = time.perf_counter()
@@ -149,6 +151,16 @@ def main() -> None:
     summary(df, "all conditions")
     for c in CONTRASTS:
         summary(df[df["contrast"] == c], f"contrast {c:g} DN")
+    print("\nours, features at 40 DN (good dots: 0.1 and 99.9 percentiles; defects: the range):")
+    at40 = df[df.contrast == 40]
+    for f in FEATURES:
+        g = at40.loc[at40.defect == "none", f"ours_{f}"]
+        parts = [f"good {np.nanpercentile(g, 0.1):.4g}…{np.nanpercentile(g, 99.9):.4g}"]
+        for d in ("satellite", "void", "smear"):
+            v = at40.loc[at40.defect == d, f"ours_{f}"]
+            if v.notna().any():
+                parts.append(f"{d} {v.min():.4g}…{v.max():.4g}")
+        print(f"  {f}: " + "; ".join(parts))
     print("\nours, missed defects by class at 40 DN:",
           df[(df.contrast == 40) & (df.defect != "none") & df.ours_qualified].defect.value_counts().to_dict())
     print("ours, false alarms by reason are in the rows; dark vs bright rms ex:",

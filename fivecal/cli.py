@@ -406,7 +406,7 @@ def demo(
     else:
         typer.echo(f"using existing demo campaign {DEMO_CAMPAIGN}")
     calibrate(DEMO_CAMPAIGN, None, "rrht", Path("reports"))
-    dispense_cli.dispense_test(DEMO_CAMPAIGN, None, Path("reports"), None, "rrht")
+    dispense_cli.dispense_test(DEMO_CAMPAIGN, None, Path("reports"), None)
 
 
 app.command("query")(lake_cli.query)

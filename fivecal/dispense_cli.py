@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from fivecal.options import DetectorOption, ResultsOption
+from fivecal.options import ResultsOption
 
 ConfigOption = Annotated[Path | None, typer.Option(help="TOML file overriding the inspection thresholds "
                                                         "([inspection] section; defaults: "
@@ -20,7 +20,6 @@ def dispense_test(
     reports: Annotated[Path, typer.Option(help="reports root; the report goes to "
                                                "<reports>/<campaign_id>/<run>/dispensing/")] = Path("reports"),
     inspection_config: ConfigOption = None,
-    detector: DetectorOption = "rrht",
 ) -> None:
     """Dispense dots in ring targets (nominal, compensated), inspect them (§4.3), fit the tip's offset,
     fold it into the compensation and check it on a fresh workpiece."""
@@ -36,7 +35,7 @@ def dispense_test(
         from flows.dispense import dispense_test as flow
 
         return flow(str(campaign), None if results is None else str(results), str(reports), None,
-                    None if inspection_config is None else str(inspection_config), detector)
+                    None if inspection_config is None else str(inspection_config))
 
     try:
         summary = _on_valid_campaign(campaign, run)

@@ -26,7 +26,6 @@ import pandas as pd
 from prefect import flow, get_run_logger
 
 import fivecal
-from flows.measure import measure_campaign
 from tasks.calibration_steps import compensate_task, identify_task
 from tasks.compensation import desired_tip_poses
 from tasks.detector_comparison import intrinsics_from_table
@@ -36,7 +35,7 @@ from tasks.dispensing.measure import dispense_rows, full_resolution, load_captur
 from tasks.dispensing.report import write_dispensing_report
 from tasks.dispensing.steps import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
-from tasks.dispensing.workpiece import Workpiece, dispensing_commands, dispensing_orientations, imaging_commands
+from tasks.dispensing.workpiece import Workpiece, imaging_commands, ring_layout
 from tasks.effects import parse_effect
 from tasks.error_model import ErrorModel
 from tasks.identification.measurements import assemble_measurements
@@ -72,10 +71,10 @@ def _capture(folder: Path, campaign: Path, rows: pd.DataFrame, workpiece: Workpi
     return manifest, inspected, _truth_columns(folder)
 
 
-def _table_rows(parts, machine, model, camera) -> pd.DataFrame:
+def _table_rows(parts, machine, model, camera, surface_z_mm: float) -> pd.DataFrame:
     frames = []
     for manifest, inspected, truth in parts:
-        rows = dispense_rows(manifest, inspected, machine, model, camera)
+        rows = dispense_rows(manifest, inspected, machine, model, camera, surface_z_mm)
         if truth is not None:
             rows = rows.merge(truth.drop(columns=["truth_nsd_r"], errors="ignore"), on="image_id", how="left")
         else:
@@ -91,11 +90,12 @@ def _fit_rows(rows: pd.DataFrame) -> pd.DataFrame:
 
 @flow(name="dispense-test")
 def dispense_test(campaign: str, results_root: str | None = None, reports_root: str = "reports",
-                  run: str | None = None, inspection_config: str | None = None, detector: str = "rrht",
+                  run: str | None = None, inspection_config: str | None = None,
                   workpiece: Workpiece = Workpiece()) -> dict[str, Any]:  # noqa: B008 (frozen)
     """The dispensing test of a calibrated campaign; returns a summary (tip offset ± u, capture
     states, tables, report; for simulated campaigns the true constant tool-frame error before and
-    after the tip fit)."""
+    after the tip fit). Reads the tables ``calibrate`` wrote (images, poses, camera_calibration, pige's
+    provenance) and re-uses its cached identification."""
     logger = get_run_logger()
     config = load_config(inspection_config)
     folder = Path(campaign).resolve()
@@ -107,7 +107,6 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     except (FileNotFoundError, OSError) as e:
         raise ValueError(f"campaign {campaign_id} has no calibration in the lake ({e}): run fivecal calibrate "
                          f"first") from None
-    measure_campaign(str(folder), results_root, detector)  # cached: calibrate ran it
     machine = nominal_machine(metadata)
     images, pose_table = read_table("images", root, campaign_id), read_table("poses", root, campaign_id)
     cameras = intrinsics_from_table(read_table("camera_calibration", root, campaign_id), metadata)
@@ -121,16 +120,14 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
 
     five_axis = measurements.stage("pige").commands
     seed = int(truth_doc["seed"]) if simulated else int(content_key(campaign_id)[:8], 16)
-    n = workpiece.rows * workpiece.cols
-    orientations = dispensing_orientations(n, (five_axis[:, 3].min(), five_axis[:, 3].max()),
-                                           (five_axis[:, 4].min(), five_axis[:, 4].max()), seed)
-    nominal = dispensing_commands(machine, workpiece, orientations)
-    imaging = imaging_commands(machine, workpiece, CAMERA)
+    layout = ring_layout(machine, workpiece, np.column_stack([five_axis.min(axis=0), five_axis.max(axis=0)]), seed)
+    centres, nominal = layout.centres, layout.commands
+    imaging = imaging_commands(machine, workpiece, centres, CAMERA)
     compensated = compensate_task.submit(machine, model, nominal, orientation).result().commands
     full_camera = full_resolution(cameras[CAMERA], round(load_machine("prototype").cameras[CAMERA].width_px
                                                          / cameras[CAMERA].width_px))
-    first_rows = pd.concat([plan_rows("nominal", workpiece, nominal, imaging),
-                            plan_rows("compensated", workpiece, compensated, imaging)], ignore_index=True)
+    first_rows = pd.concat([plan_rows("nominal", centres, nominal, imaging),
+                            plan_rows("compensated", centres, compensated, imaging)], ignore_index=True)
     key = content_key(DISPENSE_CODE_VERSION, first_rows.round(9), workpiece.to_dict())[:12]
     first = _capture(folder / "captures" / f"dispense-{key}", folder, first_rows, workpiece, seed, simulated,
                      config, logger)
@@ -139,7 +136,7 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
         summary["captures"]["dispense"] = "requested"
         return summary
     summary["captures"]["dispense"] = "measured"
-    rows = _table_rows([first], machine, model, full_camera)
+    rows = _table_rows([first], machine, model, full_camera, workpiece.surface_z_mm)
     fit_on = _fit_rows(rows[rows["phase"] == "compensated"])
     fit = fit_tip_offset(machine, model, fit_on[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy(float),
                          fit_on[["ring_x_mm", "ring_y_mm"]].to_numpy(float),
@@ -149,13 +146,13 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
                 + f" µm; dot residual rms {fit.residual_rms_um:.2f} µm")
 
     check_cmd = compensate_task.submit(machine, fit.model, nominal, orientation).result().commands
-    check_rows = plan_rows("check", workpiece, check_cmd, imaging)
+    check_rows = plan_rows("check", centres, check_cmd, imaging)
     check_key = content_key(DISPENSE_CODE_VERSION, check_rows.round(9), workpiece.to_dict())[:12]
     check = _capture(folder / "captures" / f"dispense-check-{check_key}", folder, check_rows, workpiece, seed + 1,
                      simulated, config, logger)
     parts = [first] if check is None else [first, check]
     summary["captures"]["check"] = "requested" if check is None else "measured"
-    rows = _table_rows(parts, machine, model, full_camera)
+    rows = _table_rows(parts, machine, model, full_camera, workpiece.surface_z_mm)
 
     # the held-out poses, compensated with the tip folded in
     validation = measurements.stage("validation", camera=CAMERA)

@@ -7,9 +7,10 @@ import pytest
 
 from tasks.compensation import compensate, desired_tip_poses
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset, landing_points, tool_offset_of
-from tasks.dispensing.workpiece import Workpiece, dispensing_commands, dispensing_orientations
+from tasks.dispensing.workpiece import Workpiece, ring_layout
 from tasks.effects import ToolOffset
 from tasks.error_model import ErrorModel
+from tasks.kinematics import forward
 from tasks.machine import load_machine
 from tasks.prototype_errors import load_prototype_errors
 
@@ -22,17 +23,23 @@ def setup():
     identified = load_prototype_errors()  # what the plates gave: all but the tip
     truth = replace(identified, effects=[ToolOffset(dx_um=1.9, dy_um=-2.1, dz_um=10.8)])
     wp = Workpiece()
-    nominal = dispensing_commands(machine, wp, dispensing_orientations(wp.rows * wp.cols, (-30, 30), (-180, 180), 3))
-    return machine, identified, truth, wp, nominal
+    layout = ring_layout(machine, wp, np.array([[-20, 20], [-20, 20], [0, 0], [-30, 30], [-180, 180]]), 3)
+    return machine, identified, truth, wp, layout
 
 
-def test_nominal_tip_sits_above_each_ring(setup):
-    machine, _, _, wp, nominal = setup
-    assert np.abs(landing_points(machine, None, nominal) - wp.ring_centres()).max() < 1e-9
+def test_nominal_tip_sits_above_each_ring_and_rings_do_not_touch(setup):
+    machine, _, _, wp, layout = setup
+    tip = forward(machine, layout.commands).tool_in_workpiece()[:, :3, 3]
+    assert np.abs(tip[:, :2] - layout.centres).max() < 1e-9
+    np.testing.assert_allclose(tip[:, 2], wp.surface_z_mm + wp.standoff_mm, atol=1e-9)
+    gaps = np.linalg.norm(layout.centres[:, None] - layout.centres[None], axis=2) + 1e9 * np.eye(len(tip))
+    assert gaps.min() >= wp.min_spacing_mm
+    assert np.ptp(layout.commands[:, 3]) > 50 and np.ptp(layout.commands[:, 4]) > 300  # A and C spread
 
 
 def test_tool_axis_offset_moves_dots_only_when_tilted(setup):
-    machine, _, _, _, nominal = setup
+    machine, _, _, _, layout = setup
+    nominal = layout.commands
     flat = nominal.copy()
     flat[:, 3] = 0.0
     along_axis = ErrorModel(effects=[ToolOffset(dz_um=10.0)])
@@ -44,9 +51,10 @@ def test_tool_axis_offset_moves_dots_only_when_tilted(setup):
 
 
 def test_tip_fit_recovers_the_offset_and_closes_the_compensation(setup):
-    machine, identified, truth, wp, nominal = setup
+    machine, identified, truth, _, layout = setup
+    nominal = layout.commands
     compensated = compensate(machine, identified, nominal).commands
-    rings = wp.ring_centres()
+    rings = layout.centres
     rng = np.random.default_rng(0)
     noise_um = 1.0
     measured = landing_points(machine, truth, compensated) - rings + rng.normal(0, noise_um * 1e-3, rings.shape)
@@ -63,8 +71,8 @@ def test_tip_fit_recovers_the_offset_and_closes_the_compensation(setup):
 
 
 def test_tip_fit_needs_a_tilt(setup):
-    machine, identified, _, wp, nominal = setup
-    flat = nominal.copy()
+    machine, identified, _, _, layout = setup
+    flat = layout.commands.copy()
     flat[:, 3] = 0.0
     with pytest.raises(ValueError, match="more than one A"):
-        fit_tip_offset(machine, identified, flat, wp.ring_centres(), np.zeros((len(flat), 2)))
+        fit_tip_offset(machine, identified, flat, layout.centres, np.zeros((len(flat), 2)))

@@ -43,10 +43,10 @@ DEFECT_RATE = 0.04
 CAMERA = "camera1"
 
 
-def plan_rows(phase: str, workpiece: Workpiece, dispense: np.ndarray, imaging: np.ndarray) -> pd.DataFrame:
-    """The capture's rows (see the module docstring), one per ring."""
+def plan_rows(phase: str, centres: np.ndarray, dispense: np.ndarray, imaging: np.ndarray) -> pd.DataFrame:
+    """The capture's rows (see the module docstring), one per ring: centres (N, 2) mm, dispensing and
+    imaging commands (N, 5)."""
     ids = ring_ids(len(dispense))
-    centres = workpiece.ring_centres()
     rows = pd.DataFrame({"image_id": [f"{phase}_{r}" for r in ids], "phase": phase, "ring_id": ids,
                          "ring_x_mm": centres[:, 0], "ring_y_mm": centres[:, 1]})
     rows.insert(1, "path", [f"images/{CAMERA}/{i}.png" for i in rows["image_id"]])
@@ -88,7 +88,7 @@ def simulate_dispense_capture(campaign_folder: Path, out_folder: Path, rows: pd.
     lighting = lighting_of(seed)
     truth_rows, roi = [], []
     for i, row in enumerate(rows.itertuples(index=False)):
-        ring_px, jac = ring_projection(machine, truth, imaging[i], centres[i])
+        ring_px, jac = ring_projection(machine, truth, imaging[i], centres[i], workpiece.surface_z_mm)
         x0, y0 = int(np.rint(ring_px[0])) - ROI_PX // 2, int(np.rint(ring_px[1])) - ROI_PX // 2
         defect = draw_defect(rng, DEFECT_RATE)
         dot = random_dot(rng, offsets[i], workpiece.dot_diameter_mm, defect)
@@ -109,14 +109,16 @@ def simulate_dispense_capture(campaign_folder: Path, out_folder: Path, rows: pd.
 
 
 def ring_projection(machine: Machine, errors: ErrorModel | None, imaging: np.ndarray, centre_mm: np.ndarray,
-                    camera=None) -> tuple[np.ndarray, np.ndarray]:
-    """Where camera 1 (full resolution; ``camera`` overrides its intrinsics) sees a ring centre at
-    the imaging command (5,) on the machine ``errors`` describes: pixel (2,) and the local
-    projection (2, 2) px per mm of the workpiece's x and y (central differences over ±0.5 mm)."""
+                    surface_z_mm: float, camera=None) -> tuple[np.ndarray, np.ndarray]:
+    """Where camera 1 (full resolution; ``camera`` overrides its intrinsics) sees a ring centre (2,)
+    on the surface at ``surface_z_mm`` (workpiece frame) at the imaging command (5,) on the machine
+    ``errors`` describes: pixel (2,) and the local projection (2, 2) px per mm of the workpiece's x
+    and y (central differences over ±0.5 mm)."""
     cam = camera or machine.cameras[CAMERA]
     T = forward(machine, imaging[None], errors).relative(machine.workpiece, CAMERA)[0]
     pts = np.array([[0, 0, 0], [0.5, 0, 0], [-0.5, 0, 0], [0, 0.5, 0], [0, -0.5, 0]], float)
     pts[:, :2] += centre_mm
+    pts[:, 2] = surface_z_mm
     px = project_points(pts @ T[:3, :3].T + T[:3, 3], cam)
     jac = np.column_stack([(px[1] - px[2]) / 1.0, (px[3] - px[4]) / 1.0])
     return px[0], jac

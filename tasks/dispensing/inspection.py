@@ -120,6 +120,19 @@ def _valid(contours, border: np.ndarray, cfg: InspectionConfig) -> list:
             and not _touches(c, border)]
 
 
+def flatten_background(smooth: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """``smooth`` less the tilt of a plane fitted to its ``background`` pixels (bool mask): an
+    illumination gradient across a dot would otherwise move its mid-level crossings one way on both
+    sides, shifting its centre by about the gradient's change across half the dot / the edge slope."""
+    yy, xx = np.nonzero(background)
+    if len(xx) < 10:
+        return smooth
+    A = np.column_stack([xx, yy, np.ones(len(xx))]).astype(float)
+    (gx, gy, _), *_ = np.linalg.lstsq(A, smooth[yy, xx], rcond=None)
+    rows, cols = np.mgrid[0:smooth.shape[0], 0:smooth.shape[1]]
+    return smooth - gx * (cols - xx.mean()) - gy * (rows - yy.mean())
+
+
 def choose_polarity(smooth: np.ndarray, roi: np.ndarray, border: np.ndarray, background: float, threshold: float,
                     cfg: InspectionConfig) -> tuple[str, list, list]:
     """§4.3's automatic polarity: both binaries, opened and closed; more valid contours wins, then
@@ -228,6 +241,18 @@ def measure_region(smooth: np.ndarray, contour: np.ndarray, background: float, p
                   touches_border=_touches(contour, border))
 
 
+def pixel_region(contour: np.ndarray, polarity: str) -> Region:
+    """A region from its pixel contour alone (centroid, area, length; no intensity features), for
+    one cut by the border whose outline cannot be refined."""
+    m = cv2.moments(contour)
+    area, per = float(cv2.contourArea(contour)), float(cv2.arcLength(contour, True))
+    cx, cy = (m["m10"] / m["m00"], m["m01"] / m["m00"]) if m["m00"] > 0 else contour[0, 0].astype(float)
+    return Region(x_px=float(cx), y_px=float(cy), area_px2=area, perimeter_px=per,
+                  diameter_px=float(np.sqrt(4 * area / np.pi)),
+                  circularity=float(4 * np.pi * area / per ** 2) if per > 0 else float("nan"), nsd_r=float("nan"),
+                  cov_i=float("nan"), polarity=polarity, touches_border=True)
+
+
 def classify(region: Region, cfg: InspectionConfig) -> Region:
     """§4.3's decision: qualified when A_min ≤ A ≤ A_max, C ≥ C_min, NSD_r ≤ τ_r, CoV_I ≤ τ_I and
     the region does not touch the border; otherwise the reasons, ';'-joined."""
@@ -257,6 +282,7 @@ def inspect_regions(gray: np.ndarray, cfg: InspectionConfig, roi: np.ndarray | N
     inside = smooth[roi]
     background = float(np.median(inside))
     threshold = cfg.threshold_sigmas * max(_noise_sigma(inside), 0.5)
+    smooth = flatten_background(smooth, roi & (np.abs(smooth - background) < threshold))
     # the border: the image edge and the edge of the region of interest
     border = ~cv2.erode(roi.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                         borderValue=0).astype(bool)
@@ -266,6 +292,8 @@ def inspect_regions(gray: np.ndarray, cfg: InspectionConfig, roi: np.ndarray | N
         if not cfg.region_min_px2 <= cv2.contourArea(c) <= cfg.region_max_px2:
             continue
         r = measure_region(smooth, c, background, polarity, border, cfg)
+        if r is None and _touches(c, border):
+            r = pixel_region(c, polarity)  # cut by the border: reported, never qualified
         if r is not None:
             regions.append(classify(r, cfg))
     return regions, polarity, background

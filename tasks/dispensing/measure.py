@@ -78,9 +78,9 @@ def full_resolution(camera: CameraModel, factor: int) -> CameraModel:
 
 
 def pixels_to_surface(machine: Machine, model: ErrorModel | None, camera: CameraModel, imaging: np.ndarray,
-                      uv: np.ndarray, camera_name: str = "camera1") -> np.ndarray:
-    """(N, 2) workpiece-surface points (mm) seen at sensor pixels ``uv`` (N, 2) from the imaging
-    commands (N, 5); NaN where ``uv`` is NaN."""
+                      uv: np.ndarray, surface_z_mm: float, camera_name: str = "camera1") -> np.ndarray:
+    """(N, 2) points (mm, workpiece frame) of the surface z = ``surface_z_mm`` seen at sensor pixels
+    ``uv`` (N, 2) from the imaging commands (N, 5); NaN where ``uv`` is NaN."""
     T = se3.inverse(forward(machine, imaging, model).relative(machine.workpiece, camera_name))  # camera in wp
     ok = np.all(np.isfinite(uv), axis=1)
     out = np.full((len(uv), 2), np.nan)
@@ -91,15 +91,16 @@ def pixels_to_surface(machine: Machine, model: ErrorModel | None, camera: Camera
     rays = np.column_stack([norm, np.ones(len(norm))])
     d = np.einsum("nij,nj->ni", T[ok, :3, :3], rays)
     o = T[ok, :3, 3]
-    s = -o[:, 2] / d[:, 2]
+    s = (surface_z_mm - o[:, 2]) / d[:, 2]
     out[ok] = (o + s[:, None] * d)[:, :2]
     return out
 
 
 def dispense_rows(manifest: pd.DataFrame, inspected: pd.DataFrame, machine: Machine, model: ErrorModel,
-                  camera: CameraModel) -> pd.DataFrame:
+                  camera: CameraModel, surface_z_mm: float) -> pd.DataFrame:
     """The ``dispense_inspection`` rows of one capture (truth columns not included): commands, ring and
-    dot centres in sensor pixels and on the surface (mm), dx_um/dy_um (dot − ring, workpiece frame),
+    dot centres in sensor pixels and on the surface at ``surface_z_mm`` (mm), dx_um/dy_um (dot − ring,
+    workpiece frame),
     the dot's diameter in mm and its features. ``camera``: camera 1 at full resolution."""
     df = manifest.merge(inspected, on="image_id", how="left")
     roi = df[["roi_x0", "roi_y0"]].to_numpy(float)
@@ -108,10 +109,10 @@ def dispense_rows(manifest: pd.DataFrame, inspected: pd.DataFrame, machine: Mach
     ring_px = (df[["ring_u_px", "ring_v_px"]].to_numpy(float) + 0.5) * binning - 0.5 + roi
     dot_px = (df[["dot_u_px", "dot_v_px"]].to_numpy(float) + 0.5) * binning - 0.5 + roi
     imaging = df[["image_X_mm", "image_Y_mm", "image_Z_mm", "image_A_deg", "image_C_deg"]].to_numpy(float)
-    ring_mm = pixels_to_surface(machine, model, camera, imaging, ring_px)
-    dot_mm = pixels_to_surface(machine, model, camera, imaging, dot_px)
+    ring_mm = pixels_to_surface(machine, model, camera, imaging, ring_px, surface_z_mm)
+    dot_mm = pixels_to_surface(machine, model, camera, imaging, dot_px, surface_z_mm)
     # the local scale for the diameter: a pixel step at the dot, on the surface
-    step = pixels_to_surface(machine, model, camera, imaging, dot_px + np.array([1.0, 0.0]))
+    step = pixels_to_surface(machine, model, camera, imaging, dot_px + np.array([1.0, 0.0]), surface_z_mm)
     mm_per_px = np.linalg.norm(step - dot_mm, axis=1) * binning[:, 0]
     out = df.drop(columns=["ring_u_px", "ring_v_px", "dot_u_px", "dot_v_px", "path"])
     out["ring_u_px"], out["ring_v_px"] = ring_px[:, 0], ring_px[:, 1]

@@ -66,12 +66,20 @@ def _table(df: pd.DataFrame, floatfmt: str = "{:.2f}") -> str:
     return "\n".join(lines)
 
 
+def reason_kind(reason: str) -> str:
+    """A row's reason without its numbers: 'area', 'CoV_I', '2+ dots in the ring', 'no dot', ..."""
+    first = str(reason).split(";")[0].strip()
+    if "dots in the ring" in first:
+        return "2+ dots in the ring"
+    return first.split(" ")[0] if first[:1].isupper() or first.split(" ")[0] in ("area", "circularity") else first
+
+
 def counts_table(rows: pd.DataFrame) -> pd.DataFrame:
     """Per phase: rings, qualified, defective, and the commonest reasons."""
     out = []
     for phase in _phases(rows):
         g = rows[rows["phase"] == phase]
-        reasons = g.loc[~g["qualified"], "reason"].str.split(";").str[0].str.replace(r"[\d.]+.*", "", regex=True)
+        reasons = g.loc[~g["qualified"], "reason"].map(reason_kind)
         out.append({"phase": phase, "rings": len(g), "qualified": int(g["qualified"].sum()),
                     "defective": int((~g["qualified"]).sum()),
                     "reasons": ", ".join(f"{k.strip()} ×{v}" for k, v in reasons.value_counts().items()) or "—"})

@@ -1,16 +1,21 @@
 """The dispensing-test workpiece and the commands that dispense on it and image it (§4.3, §5.3).
 
-The workpiece replaces plate a on the C table (the machine's ``workpiece`` frame: origin at its
-centre, z out of its surface). Black ring targets are printed on its surface on a grid; each ring
-gets its own dispensing orientation (A, C), spread over the A/C range of the campaign's five-axis
-poses by a Latin hypercube, so that the tip's offset along the tool axis shows in the dots (at
-A = 0 the tool is normal to the surface and that component lands on the ring centre).
+The workpiece is mounted on the C table in plate a's place, its frame the machine's ``workpiece``
+frame (origin at plate a's centre, z out of it); its top surface is ``surface_z_mm`` above plate
+a's plane, so that the tip meets it near the Z command of the five-axis poses (at the zero command
+the tip is 20 mm above plate a). Its black ring targets sit where the tip dispenses: each ring has
+its own dispensing pose, X, Y, A and C drawn by a Latin hypercube over the range of the campaign's
+five-axis poses, and the ring is printed at the foot of the nominal tip at that pose. The dots thus
+sample the tip error over the poses the calibration is judged on; at A = 0 the tool is normal to the
+surface and the tip's offset along the tool axis lands on the ring centre, so A's spread is what makes
+that component seen. Rings closer than ``min_spacing_mm`` to an earlier one are drawn again.
 
 Dispensing: the nominal machine is asked to hold the tip's opening ``standoff_mm`` above the ring
 centre (along the surface normal), tool direction fixed by (A, C); the drop that forms there wets
-the surface at the point nearest the opening (tasks.dispensing.tip). Imaging: camera 1 straight above the ring, A = C
-= 0, at its working distance. Both are plain nominal inverse kinematics: the nominal commands; the
-compensated ones come from :func:`tasks.compensation.compensate` on the same desired tip poses.
+the surface at the point nearest the opening (tasks.dispensing.tip). Imaging: camera 1 straight
+above the ring, A = C = 0, at its working distance. Both are plain nominal inverse kinematics: the
+nominal commands; the compensated ones come from :func:`tasks.compensation.compensate` on the same
+desired tip poses.
 """
 
 from __future__ import annotations
@@ -27,25 +32,17 @@ from tasks.machine import AXIS_ORDER, Machine
 
 @dataclass(frozen=True)
 class Workpiece:
-    """Ring layout (mm, workpiece frame) and ring geometry.
+    """Ring count and geometry (mm): ring inner/outer diameters, the least distance between ring
+    centres, the height of the surface above plate a's plane, the standoff of the tip's opening above
+    the surface when it dispenses, the nominal dot diameter."""
 
-    rows × cols rings at ``pitch_mm``; ring inner/outer diameters (mm); standoff of the tip's
-    opening above the surface when it dispenses (mm); nominal dot diameter (mm)."""
-
-    rows: int = 7
-    cols: int = 9
-    pitch_mm: float = 6.0
+    rings: int = 63
     ring_inner_mm: float = 2.4
     ring_outer_mm: float = 3.4
+    min_spacing_mm: float = 4.4
+    surface_z_mm: float = 19.8
     standoff_mm: float = 0.2
     dot_diameter_mm: float = 0.8
-
-    def ring_centres(self) -> np.ndarray:
-        """(N, 2) ring centres (mm) in the workpiece frame, row by row."""
-        u = (np.arange(self.cols) - (self.cols - 1) / 2) * self.pitch_mm
-        v = (np.arange(self.rows) - (self.rows - 1) / 2) * self.pitch_mm
-        uu, vv = np.meshgrid(u, v)
-        return np.stack([uu.ravel(), vv.ravel()], axis=1)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -55,14 +52,43 @@ def ring_ids(n: int) -> list[str]:
     return [f"ring{i:03d}" for i in range(n)]
 
 
-def dispensing_orientations(n: int, a_range_deg, c_range_deg, seed: int) -> np.ndarray:
-    """(n, 2) A, C (deg): a Latin hypercube over the two ranges (each stratum used once)."""
-    rng = np.random.default_rng([seed, 31])
-    out = np.empty((n, 2))
-    for j, (lo, hi) in enumerate((a_range_deg, c_range_deg)):
-        strata = (rng.permutation(n) + rng.uniform(0.05, 0.95, n)) / n
-        out[:, j] = lo + strata * (hi - lo)
+def latin_hypercube(n: int, ranges, rng: np.random.Generator) -> np.ndarray:
+    """(n, len(ranges)) samples, each column's range cut into n strata used once."""
+    out = np.empty((n, len(ranges)))
+    for j, (lo, hi) in enumerate(ranges):
+        out[:, j] = lo + (rng.permutation(n) + rng.uniform(0.05, 0.95, n)) / n * (hi - lo)
     return out
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Ring centres (N, 2) (mm, workpiece frame) and the nominal dispensing commands (N, 5) (mm, deg)."""
+
+    centres: np.ndarray
+    commands: np.ndarray
+
+
+def ring_layout(machine: Machine, workpiece: Workpiece, command_ranges: np.ndarray, seed: int,
+                max_draws: int = 200) -> Layout:
+    """The rings and their dispensing commands: X, Y, A, C over ``command_ranges`` (5, 2) (mm, deg;
+    the Z row unused) by a Latin hypercube, each ring at the foot of the nominal tip at its pose; a
+    ring nearer than ``min_spacing_mm`` to an earlier one redrawn (uniform) up to ``max_draws`` times."""
+    rng = np.random.default_rng([seed, 31])
+    cols = [0, 1, 3, 4]
+    ranges = np.asarray(command_ranges, dtype=float)[cols]
+    drawn = np.zeros((workpiece.rings, 5))
+    drawn[:, cols] = latin_hypercube(workpiece.rings, ranges, rng)
+    feet = forward(machine, drawn).tool_in_workpiece()[:, :2, 3]
+    for i in range(workpiece.rings):
+        for _ in range(max_draws):
+            if i == 0 or np.min(np.linalg.norm(feet[:i] - feet[i], axis=1)) >= workpiece.min_spacing_mm:
+                break
+            drawn[i, cols] = rng.uniform(ranges[:, 0], ranges[:, 1])
+            feet[i] = forward(machine, drawn[i:i + 1]).tool_in_workpiece()[0, :2, 3]
+        else:
+            raise ValueError(f"no room for {workpiece.rings} rings {workpiece.min_spacing_mm} mm apart over "
+                             f"these command ranges: use fewer rings")
+    return Layout(feet, dispensing_commands(machine, workpiece, feet, drawn))
 
 
 def tool_direction(machine: Machine, a_c_deg: np.ndarray) -> np.ndarray:
@@ -73,29 +99,29 @@ def tool_direction(machine: Machine, a_c_deg: np.ndarray) -> np.ndarray:
     return forward(machine, cmd).tool_in_workpiece()[:, :3, 2]
 
 
-def dispensing_commands(machine: Machine, workpiece: Workpiece, a_c_deg: np.ndarray) -> np.ndarray:
+def dispensing_commands(machine: Machine, workpiece: Workpiece, centres: np.ndarray, initial: np.ndarray
+                        ) -> np.ndarray:
     """(N, 5) nominal commands (mm, deg) that hold the tip ``standoff_mm`` above each ring centre
-    (along the surface normal), tool axis set by (A, C) per ring."""
-    centres = workpiece.ring_centres()
-    d = tool_direction(machine, a_c_deg)
-    target = np.column_stack([centres, np.full(len(centres), workpiece.standoff_mm)])
-    initial = np.zeros((len(centres), 5))
-    initial[:, 3:] = a_c_deg
+    (N, 2) (along the surface normal), the tool axis set by the A and C of ``initial`` (N, 5)."""
+    d = tool_direction(machine, initial[:, 3:])
+    target = np.column_stack([centres, np.full(len(centres), workpiece.surface_z_mm + workpiece.standoff_mm)])
     return inverse(machine, target, d, initial=initial)
 
 
-def imaging_commands(machine: Machine, workpiece: Workpiece, camera: str = "camera1") -> np.ndarray:
-    """(N, 5) nominal commands that put ``camera``'s optical axis through each ring centre, A = C = 0,
-    the camera at the same height as at the zero command (its working distance on the prototype)."""
-    centres = workpiece.ring_centres()
+def imaging_commands(machine: Machine, workpiece: Workpiece, centres: np.ndarray, camera: str = "camera1"
+                     ) -> np.ndarray:
+    """(N, 5) nominal commands that put ``camera``'s optical axis through each ring centre (N, 2),
+    A = C = 0, the camera as far from the surface as from plate a at the zero command (its working
+    distance on the prototype): Z raised by the surface height."""
     home = forward(machine, np.zeros((1, 5)))
     cam_in_wp = home.relative(camera, machine.workpiece)[0]
-    # the optical axis (camera z) meets the surface at this point (workpiece frame) at the zero command
+    # where the optical axis (camera z) meets plate a's plane at the zero command (workpiece frame)
     o, z = cam_in_wp[:3, 3], cam_in_wp[:3, 2]
     hit = o - z * (o[2] / z[2])
     cmd = np.zeros((len(centres), 5))
     cmd[:, 0] = centres[:, 0] - hit[0]
     cmd[:, 1] = centres[:, 1] - hit[1]
+    cmd[:, 2] = workpiece.surface_z_mm
     return cmd
 
 

@@ -1,0 +1,41 @@
+"""The dispense-test flow on the calibrated fixture campaign: tables, report, truth agreement, cache."""
+
+import shutil
+
+import numpy as np
+
+from flows.dispense import dispense_test
+from tasks.dispensing.workpiece import Workpiece
+from tasks.lake_schema import partition_problems
+from tasks.reproduce import opencv_threads
+from tasks.results_lake import partition_path, read_table
+
+SMALL = Workpiece(rings=20)
+
+
+def test_dispense_test_writes_its_table_after_tip_rows_and_report(calibrated_campaign, prefect_harness, tmp_path):
+    folder = tmp_path / "campaigns" / calibrated_campaign.campaign.name
+    shutil.copytree(calibrated_campaign.campaign, folder, ignore=shutil.ignore_patterns("captures"))
+    results = tmp_path / "results"
+    shutil.copytree(calibrated_campaign.results, results)
+    with opencv_threads(1):
+        summary = dispense_test(str(folder), results_root=str(results), reports_root=str(tmp_path / "reports"),
+                                run="t", workpiece=SMALL)
+    campaign_id = summary["campaign_id"]
+    assert summary["captures"] == {"dispense": "measured", "check": "measured"}
+    path = partition_path("dispense_inspection", campaign_id, results) / "part-0.parquet"
+    assert partition_problems("dispense_inspection", path) == []
+    rows = read_table("dispense_inspection", results, campaign_id)
+    assert rows.groupby("phase").size().to_dict() == {"nominal": 20, "compensated": 20, "check": 20}
+    good = rows[rows["qualified"]]
+    assert len(good) >= 0.8 * len(rows)
+    assert (good["truth_defect"] == "none").all()  # nothing defective passes
+    assert (rows.loc[~rows["qualified"], "reason"] != "").all()
+    # the measured dot offsets are the true ones to a few µm (0.05 px at 45 µm/px is 2.3 µm)
+    err = np.hypot(good["dx_um"] - good["truth_dx_um"], good["dy_um"] - good["truth_dy_um"])
+    assert err.max() < 8.0 and np.sqrt(np.mean(err ** 2)) < 4.0
+    ver = read_table("verification", results, campaign_id)
+    tip = ver[ver["phase"] == "after_tip"]
+    assert set(tip["source"]) == {"truth"} and len(tip) == len(ver[(ver.phase == "after") & (ver.source == "truth")])
+    assert len(summary["tip_offset_um"]) == 3 and all(u > 0 for u in summary["tip_offset_uncertainty_um"])
+    assert (tmp_path / "reports" / campaign_id / "t" / "dispensing" / "index.html").is_file()

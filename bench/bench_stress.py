@@ -3,6 +3,7 @@
     .venv/bin/python bench/bench_stress.py                 # all cases, 3 timed repeats
     .venv/bin/python bench/bench_stress.py --seeds 3       # each case with 3 seeds (other noise, clutter)
     .venv/bin/python bench/bench_stress.py --case fisheye  # one case (repeatable)
+    .venv/bin/python bench/bench_stress.py --random 200    # random cases: found / refused / wrongly labelled
 
 Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
 then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
@@ -21,6 +22,11 @@ detected centre within a quarter of the dot size (labels are not compared: OpenC
 own); the centre error is that distance. Prints one row per image, then per detector the found
 rate, the median and worst centre error, the median time, and the time and error ratios against
 cv2.findCirclesGrid on the images both found.
+
+``--random N`` draws N cases with :func:`tasks.detection.stress.random_case` (those whose dots are
+not all wholly in view are skipped) and counts, for RRHT and findCirclesGrid with clustering, the
+grids found and correctly labelled (RRHT: each dot within a quarter of its size of its own true
+centre, up to the grid's symmetry; OpenCV: one-to-one as above), refused, and found but wrong.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tasks.detection import detect_grid
-from tasks.detection.stress import STRESS_CASES, render_stress_case
+from tasks.detection.stress import STRESS_CASES, errors_up_to_symmetry, random_case, render_stress_case
 from tasks.plate import DotPlate
 
 DETECTORS = ("rrht", "blob", "hough", "cv2", "cv2+clustering")
@@ -70,12 +76,55 @@ def match_errors(found: np.ndarray | None, truth: np.ndarray, dot_px: float) -> 
     return d
 
 
+def random_run(n: int, seed: int) -> None:
+    """Random stress cases: found / refused / wrong for RRHT and cv2.findCirclesGrid with clustering."""
+    rng = np.random.default_rng(seed)
+    counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in ("rrht", "cv2+clustering")}
+    errs: dict[str, list[float]] = {d: [] for d in counts}
+    n_cases = 0
+    for i in range(n):
+        case = random_case(rng, f"random-{i}")
+        if case is None:
+            continue
+        n_cases += 1
+        image, truth = render_stress_case(case)
+        plate = replace(case.plate, dark_dots=case.dark_dots)
+        verdicts = []
+        for d in counts:
+            c = run(d, image, plate)
+            if c is None:
+                verdict = "refused"
+            elif d == "rrht":
+                e = errors_up_to_symmetry(plate, c, truth)
+                verdict = "found" if e.max() < 0.25 * case.dot_px else "wrong"
+                errs[d] += [float(np.median(e))] if verdict == "found" else []
+            else:
+                e = match_errors(c, truth, case.dot_px)
+                verdict = "found" if e is not None else "wrong"
+                errs[d] += [float(np.median(e))] if e is not None else []
+            counts[d][verdict] += 1
+            verdicts.append(f"{d} {verdict}")
+        print(f"{case.name:11s} {case.width}x{case.height} dot {case.dot_px:5.1f}px tilt {case.tilt_deg:4.1f} "
+              f"k1 {case.k1:+.2f} blur {case.defocus_px:.0f} jpeg {case.jpeg:2d} "
+              f"{'dark' if case.dark_dots else 'light'}: " + ", ".join(verdicts), flush=True)
+    print(f"\n{n_cases} random cases in view (of {n} drawn, seed {seed})")
+    for d, c in counts.items():
+        med = statistics.median(errs[d]) if errs[d] else float("nan")
+        print(f"{d:15s} found {c['found']}, refused {c['refused']}, wrong {c['wrong']}; "
+              f"median of the per-image median centre errors {med:.3f} px")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seeds", type=int, default=1, help="renders per case (seeds case.seed, +100, +200 …)")
     ap.add_argument("--case", action="append", help="only these cases (repeatable)")
+    ap.add_argument("--random", type=int, default=0, help="draw this many random cases instead")
+    ap.add_argument("--random-seed", type=int, default=0)
     args = ap.parse_args()
+    if args.random:
+        random_run(args.random, args.random_seed)
+        return
     cases = [c for c in STRESS_CASES if not args.case or c.name in args.case]
     print(f"cv2 {cv2.__version__}, cv2 threads {cv2.getNumThreads()}; {len(cases)} cases × {args.seeds} seeds, "
           f"{args.repeat} repeats")

@@ -233,14 +233,17 @@ def detect(
 
         cv2.imwrite(str(debug_image), draw_detection(grey, result, plate))
     rc = plate.row_col()
-    dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "residual_rms_px": float(q),
-             "support_ratio": float(sr)}
-            for (r, c), (u, v), q, sr in zip(rc, result.centres, result.residual_rms_px, result.support_ratio,
-                                             strict=True)]
+    ellipse = result.ellipse_centres if result.ellipse_centres is not None else result.centres
+    dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "ellipse_u_px": float(eu),
+             "ellipse_v_px": float(ev), "residual_rms_px": float(q), "support_ratio": float(sr)}
+            for (r, c), (u, v), (eu, ev), q, sr in zip(rc, result.centres, ellipse, result.residual_rms_px,
+                                                       result.support_ratio, strict=True)]
     if json_output:
         typer.echo(json.dumps({"image": str(image), "ok": result.ok, "reason": result.reason,
                                "detector": result.detector, "elapsed_s": result.elapsed_s,
-                               "rotation_deg": result.rotation_deg, "dots": dots}, indent=1))
+                               "rotation_deg": result.rotation_deg, "n_candidates": result.n_candidates,
+                               "pixel_origin": "centre of the top-left pixel",
+                               "dots": dots}, indent=1))
     else:
         typer.echo(f"{image}: {result.detector} {'ok' if result.ok else 'FAILED: ' + result.reason} "
                    f"({1e3 * result.elapsed_s:.0f} ms, rotation {result.rotation_deg:.2f} deg)")

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from fivecal.cli import app
 from tasks.detection import detect_grid
 from tasks.detection.debug_image import BANNER_FAIL, BANNER_OK, draw_detection
-from tasks.detection.stress import STRESS_CASES, render_stress_case
+from tasks.detection.stress import STRESS_CASES, errors_up_to_symmetry, render_stress_case
 
 CASES = {c.name: c for c in STRESS_CASES}
 SMALL_PHONE = replace(CASES["phone-12mp"], name="phone-3mp", width=1512, height=2016, dot_px=75.0)
@@ -25,20 +25,6 @@ LARGE_DOTS = replace(CASES["phone-400px"], name="phone-200px", width=1512, heigh
 
 def _plate(case):
     return replace(case.plate, dark_dots=case.dark_dots)
-
-
-def _errors_up_to_symmetry(plate, centres, truth):
-    """Centre errors (px) under the grid symmetry (a flip of rows and/or columns) that fits best."""
-    g = centres.reshape(plate.rows, plate.cols, 2)
-    best = None
-    for fr in (False, True):
-        for fc in (False, True):
-            c = g[::-1] if fr else g
-            c = c[:, ::-1] if fc else c
-            e = np.linalg.norm(c.reshape(-1, 2) - truth, axis=1)
-            if best is None or np.median(e) < np.median(best):
-                best = e
-    return best
 
 
 @pytest.mark.parametrize(("case", "median_px", "max_px"), [
@@ -56,7 +42,7 @@ def test_stress_case_is_found_and_labelled(case, median_px, max_px):
     image, truth = render_stress_case(case)
     det = detect_grid(image, _plate(case), "rrht")
     assert det.ok, det.reason
-    err = _errors_up_to_symmetry(_plate(case), det.centres, truth)
+    err = errors_up_to_symmetry(_plate(case), det.centres, truth)
     assert err.max() < 0.25 * case.dot_px  # every dot labelled as the right one
     assert np.median(err) < median_px and err.max() < max_px
 
@@ -108,7 +94,7 @@ def test_region_contours_alone_find_the_grid():
     image, truth = render_stress_case(case)
     det = detect_rrht(image, _plate(case), params=FrameworkParams(rrht=RRHTParams(min_rim_ratio=2.0)))
     assert det.ok, det.reason
-    err = _errors_up_to_symmetry(_plate(case), det.centres, truth)
+    err = errors_up_to_symmetry(_plate(case), det.centres, truth)
     assert np.median(err) < 0.3 and err.max() < 0.8
 
 
@@ -129,3 +115,17 @@ def test_local_homographies_match_opencv_on_exact_points():
     rc = np.stack(np.meshgrid(np.arange(4), np.arange(3)), axis=-1).reshape(-1, 2)[:, ::-1]
     glob, _ = correct_bias(uv, xy, 2.0)
     assert np.abs(correct_bias_local(uv, xy, 2.0, rc) - glob).max() < 1e-4  # px
+
+
+def test_candidate_fit_far_off_the_image_is_no_rim():
+    """A candidate refitted to a centre far outside the coarse map (seen on tilt-50, seed 108) has no rim."""
+    from tasks.detection.edges import canny_edges, direction_codes
+    from tasks.detection.rrht import RRHTParams, fit_candidates
+
+    image, _ = render_stress_case(replace(CASES["tilt-50"], seed=108))
+    em = canny_edges(image)
+    dirs = direction_codes(em, em.edges)
+    centres = np.array([[-400.0, 50.0], [image.shape[1] / 2, image.shape[0] / 2]])
+    _, _, _, ratio = fit_candidates(dirs, centres, np.array([20.0, 20.0]), True, RRHTParams())
+    assert ratio[0] == 0.0
+    assert detect_grid(image, _plate(CASES["tilt-50"]), "rrht").ok

@@ -1,8 +1,19 @@
-"""The RRHT-based dot-grid detection framework (seed paper §4.1, adapted to dot grids).
+"""The RRHT-based dot-grid detection framework (seed paper §4.1, adapted to dot grids and photographs).
 
     image ─ downsample ─ median + gamma ─ Canny ─ chain-code filter ─ RRHT circles (coarse)
-          ─ grid ordering ─ sub-pixel ellipses in circular ROIs at full size (RANSAC + LSQ)
-          ─ homography + perspective-bias correction ─ GridDetection
+          ─ appearance test ─ grid ordering  (no grid: + region-contour candidates, order again)
+          ─ sub-pixel ellipses in circular ROIs at full size (RANSAC + LSQ, pixel edge fit)
+          ─ homography + perspective-bias correction (local homographies under lens distortion)
+          ─ GridDetection
+
+Without a scale hint the coarse search runs over bands of dot size until one yields the grid
+(:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
+1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 6 px up
+at full resolution. Candidates must look like a filled dot on a clear ring of plate
+(:mod:`tasks.detection.verify`); when the Hough circles give no grid, dark (light) regions
+against their local mean are added (:mod:`tasks.detection.blobs`). A view without exactly one
+complete rows × cols window is refused with the reason (:mod:`tasks.detection.grid`): a wrong
+labelling is worse than none.
 
 SYNOPSIS
 
@@ -83,6 +94,9 @@ LARGE_DOT_BAND = (28.0, 3.5)
 """Second search without a scale hint: dots from 1/28 to 1/3.5 of the longer image side (a
 grid that fills a phone photograph or a webcam frame), on an image downsampled so that they
 are again 6 to 50 coarse px across; it overlaps the first band by a factor 2."""
+SMALL_DOT_PX = 6.0
+"""Third search, on a large image whose first band starts above this: dots from 6 px to twice
+the first band's smallest, at full resolution (a distant plate in a phone photograph)."""
 
 
 def search_bands(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float | None, target_d: float,
@@ -90,14 +104,18 @@ def search_bands(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float 
     """The coarse searches to try in turn: (factor, d_min, d_max) px, see :func:`search_scale`.
 
     Without a hint the first band covers dots of 1/128 to 1/14 of the longer side; when it finds
-    no grid, :data:`LARGE_DOT_BAND` is searched on a 4× coarser image.
+    no grid, :data:`LARGE_DOT_BAND` is searched on a 4× coarser image, then (on images whose
+    first band starts above 8 px) the small dots of :data:`SMALL_DOT_PX` at full resolution.
     """
     first = search_scale(shape, plate, px_per_mm_hint, target_d, coarse_width)
     if px_per_mm_hint is not None and px_per_mm_hint > 0:
         return [first]
     big = max(shape)
     lo, hi = LARGE_DOT_BAND
-    return [first, (max(1, round(big / (coarse_width / 4))), big / lo, big / hi)]
+    bands = [first, (max(1, round(big / (coarse_width / 4))), big / lo, big / hi)]
+    if first[1] > 8.0:
+        bands.append((1, SMALL_DOT_PX, 2.0 * first[1]))
+    return bands
 
 
 @dataclass

@@ -174,7 +174,9 @@ def fit_candidates(dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray, dar
     flat, wp = _padded(dirs, pad)
     pu = np.rint(centres[:, 0, None, None] + cs[None, :, None] * rad).astype(np.int32)  # (K, R, T)
     pv = np.rint(centres[:, 1, None, None] + sn[None, :, None] * rad).astype(np.int32)
-    code = flat[(pv + pad) * wp + (pu + pad)]
+    h, w = dirs.shape
+    on_map = (pu >= -pad) & (pu < w + pad) & (pv >= -pad) & (pv < h + pad)  # a refitted centre may lie far off
+    code = np.where(on_map, flat[np.where(on_map, (pv + pad) * wp + (pu + pad), 0)], 255)
     ray_code = np.rint(ang * (N_DIRECTIONS / (2 * np.pi))).astype(np.int16)
     if not dark_dots:
         ray_code = (ray_code + N_DIRECTIONS // 2) % N_DIRECTIONS

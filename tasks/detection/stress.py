@@ -24,7 +24,7 @@ import numpy as np
 
 from tasks.camera_model import CameraModel
 from tasks.plate import DotPlate, facing_camera_pose
-from tasks.render import ImagingConditions, project_points_ext, render_plate_image, true_dot_centres
+from tasks.render import ImagingConditions, plate_in_view, project_points_ext, render_plate_image, true_dot_centres
 
 ISSUE_PLATE = DotPlate(4, 3, 6.0, 4.0, dark_dots=True, margin_mm=5.0, name="stress")
 """The sheet of the issue's photographs: 4 × 3 dots of Ø 4 mm at a 6 mm pitch, on paper."""
@@ -186,6 +186,8 @@ STRESS_CASES: tuple[StressCase, ...] = (
                colour=True, jpeg=85, shadow=0.6, gradient=0.4, seed=1),
     StressCase("phone-12mp-light", 3024, 4032, 150.0, tilt_deg=20.0, spin_deg=-8.0, clutter=40, texture=True,
                colour=True, jpeg=85, dark_dots=False, seed=2),
+    StressCase("phone-20px", 3024, 4032, 20.0, tilt_deg=25.0, spin_deg=10.0, clutter=60, texture=True,
+               colour=True, jpeg=85, shadow=0.6, seed=11),
     StressCase("phone-400px", 3024, 4032, 400.0, tilt_deg=5.0, clutter=20, texture=True, colour=True, jpeg=85,
                seed=3),
     StressCase("fisheye", 320, 360, 30.0, focal_px=170.0, k1=-0.35, k2=0.1, offset=(0.15, 0.2), tilt_deg=25.0,
@@ -203,3 +205,38 @@ STRESS_CASES: tuple[StressCase, ...] = (
                clutter=20, texture=True, colour=True, jpeg=85, seed=10),
 )
 """The stress set: names say what each case stresses."""
+
+
+def random_case(rng: np.random.Generator, name: str) -> StressCase | None:
+    """A stress case drawn at random (image size, dot size 8 px … 1/6 of the image, tilt ≤ 50°,
+    any spin, fisheye in 30 %, either polarity, clutter, texture, shadow, colour, JPEG 50–95,
+    extra blur 0–2 px, uneven light), or None when its dots are not all wholly in the image."""
+    w, h = [(640, 480), (320, 360), (1280, 960), (800, 600)][int(rng.integers(4))]
+    big = max(w, h)
+    fish = bool(rng.random() < 0.3)
+    case = StressCase(
+        name, w, h, float(np.exp(rng.uniform(np.log(8.0), np.log(big / 6.0)))), focal_px=0.55 * big if fish else 0.0,
+        tilt_deg=float(rng.uniform(0, 50)), tilt_azimuth_deg=float(rng.uniform(0, 360)),
+        spin_deg=float(rng.uniform(-180, 180)), offset=(float(rng.uniform(-0.3, 0.3)), float(rng.uniform(-0.3, 0.3))),
+        k1=-0.35 if fish else float(rng.uniform(-0.1, 0.0)), k2=0.1 if fish else 0.0,
+        dark_dots=bool(rng.random() < 0.7), clutter=int(rng.integers(0, 40)), texture=bool(rng.random() < 0.5),
+        shadow=float(rng.choice([1.0, 0.6, 0.4])), colour=bool(rng.random() < 0.5),
+        jpeg=int(rng.choice([0, 95, 85, 70, 50])), defocus_px=float(rng.choice([0.0, 0.0, 1.0, 2.0])),
+        gradient=float(rng.uniform(0, 1)), vignetting=float(rng.uniform(0, 0.5)), seed=int(rng.integers(1 << 30)))
+    plate = replace(case.plate, dark_dots=case.dark_dots)
+    return case if plate_in_view(case.camera(), plate, case.pose(), border_px=1.0) else None
+
+
+def errors_up_to_symmetry(plate: DotPlate, centres: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Centre errors (rows*cols,) px under the flip of rows and/or columns that fits best: without
+    a rotation prior a grid's orientation is a convention. centres, truth (rows*cols, 2) px."""
+    g = centres.reshape(plate.rows, plate.cols, 2)
+    best = None
+    for flip_rows in (False, True):
+        for flip_cols in (False, True):
+            c = g[::-1] if flip_rows else g
+            c = c[:, ::-1] if flip_cols else c
+            e = np.linalg.norm(c.reshape(-1, 2) - truth, axis=1)
+            if best is None or np.median(e) < np.median(best):
+                best = e
+    return best

@@ -1,7 +1,8 @@
 """Calibrate a campaign (§3.3, §4.2, §5.2): measure it, extract the PDGEs, identify the PIGEs,
 compensate the validation poses, verify them on a second capture and write the report.
 
-Writes the ``pdge``, ``pige``, ``compensation``, ``verification`` and ``formulations`` tables
+Writes the ``pdge``, ``pige``, ``compensation``, ``verification``, ``formulations``, ``residuals``,
+``residual_trends`` and ``diagnosis`` tables
 and ``reports/<campaign_id>/<run>/``. Every stage is a cached task: re-running on an unchanged
 campaign re-uses all of them.
 """
@@ -53,6 +54,7 @@ from tasks.machine import CALIBRATION_STAGE
 from tasks.model_ladder import append_step, ladder_step
 from tasks.report import ReportData
 from tasks.report.residual_figures import residual_report
+from tasks.residual_trends import shared_deviations, trend_tests
 from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
 from tasks.results_lake import partition_path, read_table, write_partition
 from tasks.verification import (
@@ -222,12 +224,15 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     ladder = append_step(campaign_id, ladder_step(machine, result.model, fit, measurements, cv_rms=cv_rms),
                          provenance, root)
     tables["model_ladder"] = str(partition_path("model_ladder", campaign_id, root))
-    sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras)
+    trends = trend_tests(residuals, shared_deviations(machine, result.model, propagated, measurements))
+    tables["residual_trends"] = str(write_partition("residual_trends", campaign_id, trends, provenance, root))
     logger.info("diagnosis: scoring every catalogue effect the model lacks")
     diag_future = diagnose_task.submit(machine, measurements, result)
     diagnosis = diag_future.result()
     cached["diagnose"] = diag_future.state.name == "Cached"
     tables["diagnosis"] = str(write_partition("diagnosis", campaign_id, diagnosis.table, provenance, root))
+    sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras, trends=trends,
+                                        accepted=diagnosis.accepted)
     sections = [("What the model lacks (diagnosis)", "\n\n".join(diagnosis.sentences)), *sections]
     logger.info("diagnosis:\n" + "\n".join(diagnosis.sentences))
 

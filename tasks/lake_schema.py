@@ -379,10 +379,10 @@ _TABLES = (
         _s("component", "the residuals table's camera-frame component tested (cam_dx_um … cam_rz_arcsec)"),
         _i("bins", "bins holding at least 3 images (equal-count bins; one per value for an approach direction)"),
         _c("span", "float64", "um or arcsec", RESIDUAL_CAMERA, "max − min of the bin means (the component's unit)"),
-        _c("statistic", "float64", meaning="χ² of the bin means' differences from their common mean, with the "
-           "covariance of the bin means: the scatter within each bin plus what the images share through the "
+        _c("statistic", "float64", meaning="Welch's F of the bin means' differences from their common mean, with "
+           "the covariance of the bin means: the scatter within each bin plus what the images share through the "
            "identified model's uncertainty (its propagated re-fits)"),
-        _c("p_value", "float64", meaning="χ² tail probability with bins − 1 degrees of freedom"),
+        _c("p_value", "float64", meaning="F tail probability (bins − 1 and Welch's degrees of freedom)"),
         _c("significant", "bool", meaning="p_value below the test's level (5 %): about one panel in twenty on a "
            "campaign that lacks no effect"))),
     TableSchema("model_ladder", 1, "refit of the campaign with a set of effects (a step)",

@@ -270,7 +270,7 @@ def trends_markdown(trends: pd.DataFrame, limit: int = 15) -> str:
     rows = [[r.camera, r.variable, r.component, r.bins, fmt_g(r.span, 3), fmt_g(r.statistic, 3),
              fmt_g(r.p_value, 2)] for r in s.head(limit).itertuples(index=False)]
     more = f"\n\n({len(s) - limit} more significant panels not listed.)" if len(s) > limit else ""
-    return md_table(["camera", "variable", "component", "bins", "span", "χ²", "p"], rows) + more
+    return md_table(["camera", "variable", "component", "bins", "span", "F", "p"], rows) + more
 
 
 def trends_story(trends: pd.DataFrame, accepted: Sequence[str] = ()) -> str:

@@ -11,8 +11,8 @@ a constant offset (a camera-frame rotation the fit leaves in the validation pose
 variable and is not a trend. With b the K bin means and d = b − b̄ (b̄ their mean weighted by the
 inverse of Σ), the statistic is dᵀ Σ⁺ d / (K − 1), Σ the covariance of the bin means, referred to
 an F distribution with Welch's correction for variances estimated from each bin's own images
-(Welch 1951, the one-way analysis of unequal variances; without it 8 % of pure-noise panels were
-flagged at 5 %, tests/test_residuals.py):
+(Welch 1951, the one-way analysis of unequal variances; on 612 pure-noise panels 8.0 % were flagged
+at 5 % without it, 6.9 % with it: tests/test_residuals.py):
 
     Σ = diag(s²_k / n_k) + Σ_shared
 

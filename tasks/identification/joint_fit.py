@@ -280,16 +280,21 @@ the first leaves up to 20u (the responses change with the 100u it moves), the se
 
 
 def joint_refine(machine: Machine, base: ErrorModel, measurements: Measurements, poses: Measurements,
-                 pdge: PdgeResult, fit: PigeFit, iterations: int = JOINT_ITERATIONS
-                 ) -> tuple[PdgeResult, PigeFit, JointStep]:
+                 pdge: PdgeResult, fit: PigeFit, iterations: int = JOINT_ITERATIONS,
+                 penalty_of: PdgeResult | None = None) -> tuple[PdgeResult, PigeFit, JointStep]:
     """The joint step (module docstring) from the alternation's ``pdge`` and ``fit``: the refined
     profiles, the constant fit over ``poses`` run from the joint solution with those profiles (its
     covariance replaced by the joint one, which carries the profiles' noise), and the last step (for
-    the uncertainty propagation's re-fits)."""
-    variances = position_variances(pdge.table)
+    the uncertainty propagation's re-fits).
+
+    penalty_of: the extraction whose roughness and position variances set the penalties (default
+    ``pdge``'s own). Noise-free poses (the truth expressed in a fit's gauge) take the noisy fit's:
+    their own variances are zero."""
+    penalty_of = penalty_of or pdge
+    variances = position_variances(penalty_of.table)
     for _ in range(iterations):
         f = fit.fit
-        step = JointStep.build(machine, fit.specs, fit.model, f.x, f.jacobian, f.null_space, pdge.smoothing,
+        step = JointStep.build(machine, fit.specs, fit.model, f.x, f.jacobian, f.null_space, penalty_of.smoothing,
                                variances, measurements)
         x, profiles = step.solve(measurements)
         pdge = with_profiles(pdge, profiles)

@@ -283,6 +283,8 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
     if truth is not None:
         clean = synthetic_measurements(machine, truth, measurements)
         clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
-        clean_pdge, truth_fit, _ = alternate(machine, base, clean, clean_poses, specs, rounds=JOINT_START_ROUNDS)
-        _, truth_fit, _ = joint_refine(machine, base, clean, clean_poses, clean_pdge, truth_fit)
+        # the same estimator on exact poses: the noisy fit's smoothers (exact repeats have no variance)
+        clean_pdge, truth_fit, _ = alternate(machine, base, clean, clean_poses, specs, rounds=JOINT_START_ROUNDS,
+                                             smoothing=pdge.smoothing)
+        _, truth_fit, _ = joint_refine(machine, base, clean, clean_poses, clean_pdge, truth_fit, penalty_of=pdge)
     return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=extraction, joint=True)

@@ -15,8 +15,10 @@ them and ``--results``/``--reports`` to folders of your own.
 poses) with the prototype's frozen errors as truth; ``--draws`` noise draws of the pose covariance
 (tests/test_identification.py's) are calibrated and the scatter of every parameter set beside the
 uncertainty the calibration states (the propagated one of the first ``--propagate`` draws, as the
-``pige`` table gives it; the LM's beside it), with σ² per draw and the tip error of the identified
-model against the truth on the validation poses (what compensation would leave).
+``pige`` table gives it; the LM's beside it), the bias and RMS of (est − truth)/u against the truth
+in each fit's gauge (the same calibration of the exact poses, as the ``pige`` table's ``truth``),
+with σ² per draw and the tip error of the identified model against the truth on the validation
+poses (what compensation would leave).
 
     python bench/seed_panel.py --mode poses --draws 16
 
@@ -48,6 +50,7 @@ from tasks.campaign_plan import CampaignPlan, plan_campaign
 from tasks.compensation import desired_tip_poses
 from tasks.error_model import ARCSEC, UM
 from tasks.identification.measurements import Measurements, planned_measurements
+from tasks.identification.parameters import default_parameters
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS
 from tasks.identification.pige_identification import calibrate, synthetic_measurements
 from tasks.identification.uncertainty import propagate_uncertainty
@@ -173,23 +176,23 @@ def run_poses(args) -> tuple[pd.DataFrame, pd.DataFrame]:
     machine, truth = load_machine("prototype"), load_prototype_errors()
     plan, _ = plan_campaign(machine, SMALL_PLAN, args.plan_seed)
     clean = synthetic_measurements(machine, truth, planned_measurements(plan, POSE_COV))
-    reference = calibrate(machine, clean)  # the truth in the fit's gauge
-    specs = reference.pige.specs
+    specs = default_parameters()
     scale = np.array([s.scale for s in specs])
     val = clean.stage("validation", camera="camera1")
     desired = desired_tip_poses(machine, val.commands)
     true_tip = forward(machine, val.commands, truth).tool_in_workpiece()
     L = np.linalg.cholesky(POSE_COV)
-    values, lm_u, stated, draws = [], [], [], []
+    values, truths, lm_u, stated, draws = [], [], [], [], []
     for d in range(args.draws):
         rng = np.random.default_rng([args.noise_seed, d])
         noisy = Measurements(clean.table, clean.T @ se3.exp(rng.normal(size=(len(clean), 6)) @ L.T), clean.cov,
                              clean.context)
         t0 = time.perf_counter()
-        result = calibrate(machine, noisy)
+        result = calibrate(machine, noisy, truth)
         seconds = time.perf_counter() - t0
         fit = result.pige.fit
         values.append(np.where(fit.identifiable, fit.x, np.nan) / scale)
+        truths.append(result.truth_pige.fit.x / scale)  # the truth in this fit's gauge
         lm_u.append(fit.uncertainty / scale)
         if d < args.propagate:
             stated.append(propagate_uncertainty(machine, result, noisy).combined / scale)
@@ -200,14 +203,13 @@ def run_poses(args) -> tuple[pd.DataFrame, pd.DataFrame]:
                       "tip_um": true, "const_um": const, "vary_um": vary, "seconds": seconds})
         print(f"draw {d}: σ² {fit.sigma2:.2f}, {int(fit.identifiable.sum())}/{fit.x.size} identifiable, "
               f"tip {true:.2f} µm (vary {vary:.2f}), {seconds:.1f} s", file=sys.stderr, flush=True)
-    values, lm_u = np.array(values), np.array(lm_u)
+    values, truths, lm_u = np.array(values), np.array(truths), np.array(lm_u)
     u = np.nanmedian(np.array(stated), axis=0) if stated else np.nanmedian(lm_u, axis=0)
-    x_ref = reference.pige.fit.x / scale
     sd = np.nanstd(values, axis=0, ddof=1)
     per_param = pd.DataFrame({"parameter": [s.name for s in specs], "unit": [s.unit for s in specs],
                               "scatter": sd, "stated_u": u, "lm_u": np.nanmedian(lm_u, axis=0),
-                              "scatter_over_u": sd / u, "bias": np.nanmean(values, axis=0) - x_ref,
-                              "rms_z": np.sqrt(np.nanmean(((values - x_ref) / u) ** 2, axis=0))})
+                              "scatter_over_u": sd / u, "bias": np.nanmean(values - truths, axis=0),
+                              "rms_z": np.sqrt(np.nanmean(((values - truths) / u) ** 2, axis=0))})
     return per_param, pd.DataFrame(draws)
 
 

@@ -29,7 +29,6 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-import click
 import typer
 from typer.exceptions import TyperException
 
@@ -39,9 +38,8 @@ GRACE_S = 5.0
 DEBUG_ENV = "FIVECAL_DEBUG"
 _EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
 _received: list[int] = []
-# exits and usage errors of typer (which vendors its own click) and click: theirs to report
-_PASS_THROUGH = (typer.Exit, typer.Abort, TyperException, click.exceptions.Exit, click.exceptions.Abort,
-                 click.ClickException, SystemExit)
+# typer's exits and usage errors (TyperException: its vendored click's): typer reports them
+_PASS_THROUGH = (typer.Exit, typer.Abort, TyperException, SystemExit)
 
 
 class GuardedTyper(typer.Typer):

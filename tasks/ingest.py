@@ -231,8 +231,8 @@ def load_manifest(folder: str | Path) -> pd.DataFrame:
     and "" when absent; extra columns are ignored) and ``malformed`` ("" or why the row's field
     count differs from the header's — such a row is kept, padded or cut to the header, and
     flagged by :func:`check_manifest`). Raises :class:`CampaignError` naming the file when it is
-    missing, unreadable, larger than :data:`MAX_MANIFEST_BYTES`, not CSV, lacks a required column
-    or has no data row.
+    missing, unreadable, larger than :data:`MAX_MANIFEST_BYTES`, not CSV, lacks a required column,
+    has no data row, or has more than :data:`MAX_FAULT_FRACTION` of its rows of the wrong width.
     """
     path = Path(folder) / MANIFEST_FILE
     try:
@@ -269,6 +269,12 @@ def load_manifest(folder: str | Path) -> pd.DataFrame:
 
     width = len(header)
     n_fields = np.array([len(r) for r in records])
+    n_malformed = int((n_fields != width).sum())
+    if n_malformed > MAX_FAULT_FRACTION * len(records):  # not a manifest: stop before typing every row
+        first = lines[int(np.argmax(n_fields != width))]
+        raise CampaignError(f"{path}: {n_malformed} of {len(records)} rows have more or fewer fields than the header's "
+                            f"{width}, more than the {MAX_FAULT_FRACTION:.0%} a campaign may have "
+                            f"(MAX_FAULT_FRACTION): refused whole, nothing written. First: line {first}")
     padded = [r[:width] + [""] * (width - len(r)) if len(r) != width else r for r in records]
     raw = pd.DataFrame(padded, columns=header, dtype=str)
     out = pd.DataFrame({"manifest_row": np.arange(1, len(records) + 1, dtype=np.int64)})

@@ -184,18 +184,19 @@ def print_result(batches: Iterator[pd.DataFrame], echo, fmt: str = "table", max_
             text += f"\n… more rows not shown (the first {max_rows} above; --max-rows 0 or --format csv shows all)"
         echo(text)
         return
-    if fmt == "json":
-        echo("[")
-    first = True
+    if fmt == "csv":
+        for i, df in enumerate(batches):
+            if i == 0 or len(df):  # the header comes with the first batch, empty or not
+                echo(df.to_csv(index=False, header=i == 0).rstrip("\n"))
+        return
+    echo("[")
+    separator = ""
     for df in batches:
-        if fmt == "csv":
-            echo(df.to_csv(index=False, header=first).rstrip("\n")) if first or len(df) else None
-        elif len(df):
+        if len(df):
             records = json.loads(df.to_json(orient="records", date_format="iso"))
-            echo(("" if first else ",") + ",\n".join(json.dumps(r, ensure_ascii=False) for r in records))
-        first = first and (fmt == "json" and not len(df))
-    if fmt == "json":
-        echo("]")
+            echo(separator + ",\n".join(json.dumps(r, ensure_ascii=False) for r in records))
+            separator = ","
+    echo("]")
 
 
 def format_result(df: pd.DataFrame | None, fmt: str = "table", max_rows: int = 100) -> str:

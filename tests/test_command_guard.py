@@ -131,10 +131,10 @@ def test_the_server_watchdog_ends_the_server_when_its_parent_is_killed(tmp_path)
     child = None
     try:
         child = int(parent.stdout.readline())
+        time.sleep(1.0)
+        assert _running(child), _stderr_of(parent)  # the server runs while its parent lives
         cmdline = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
         assert cmdline[1:4] == [b"-m", b"fivecal.server_watchdog", str(parent.pid).encode()]
-        time.sleep(1.0)
-        assert Path(f"/proc/{child}").exists()  # the server runs while its parent lives
         parent.kill()  # SIGKILL: no atexit, no finally
         parent.wait(timeout=10)
         deadline = time.monotonic() + 15
@@ -146,6 +146,11 @@ def test_the_server_watchdog_ends_the_server_when_its_parent_is_killed(tmp_path)
         parent.wait()
         if child is not None and _running(child):
             os.kill(child, signal.SIGKILL)
+
+
+def _stderr_of(proc: subprocess.Popen) -> str:
+    proc.kill()
+    return proc.communicate(timeout=10)[1]
 
 
 def _running(pid: int) -> bool:

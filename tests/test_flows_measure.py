@@ -57,3 +57,22 @@ def test_measure_finds_every_grid_calibrates_and_caches(prefect_harness, tmp_pat
     n_chunks = -(-n // 32)
     assert second["cached"] == {"detect": n_chunks, "calibrate": 1, "poses": 1}
     pd.testing.assert_frame_equal(read_table("poses", results, "m1"), before)
+
+
+def test_calibrate_on_a_campaign_without_a_validation_pose_ends_in_one_line_and_writes_no_calibrate_table(
+        prefect_harness, campaign_copy, tmp_path):
+    from typer.testing import CliRunner
+
+    from fivecal.cli import app
+
+    campaign = campaign_copy("noval")
+    manifest = pd.read_csv(campaign / "manifest.csv", dtype=str)
+    for path in manifest.loc[manifest.stage == "validation", "path"]:  # 1 of 18: ingest accepts the campaign
+        (campaign / path).unlink()
+    root = tmp_path / "results"
+    result = CliRunner().invoke(app, ["calibrate", str(campaign), "--results", str(root), "--reports",
+                                      str(tmp_path / "reports")])
+    assert result.exit_code == 2, result.output
+    assert "no validation image of camera1 gave a pose" in result.output and "Traceback" not in result.output
+    assert len(read_table("poses", root, "noval")) == len(manifest) - 1  # measure's step went through
+    assert not any((root / t).exists() for t in ("pdge", "pige", "compensation", "verification", "diagnosis"))

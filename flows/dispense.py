@@ -143,7 +143,8 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
                          fit_on[["dx_um", "dy_um"]].to_numpy(float) * 1e-3)
     logger.info(f"tip offset (tool frame) from {fit.dots} dots: "
                 + ", ".join(f"{v:+.2f} ± {u:.2f}" for v, u in zip(fit.offset_um, fit.uncertainty_um, strict=True))
-                + f" µm; dot residual rms {fit.residual_rms_um:.2f} µm")
+                + f" µm; tool-axis error ∝ sin A {fit.tilt_um:+.2f} ± {fit.tilt_uncertainty_um:.2f} µm; dot residual "
+                f"rms {fit.residual_rms_um:.2f} µm")
 
     check_cmd = compensate_task.submit(machine, fit.model, nominal, orientation).result().commands
     check_rows = plan_rows("check", centres, check_cmd, imaging)
@@ -164,6 +165,7 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
                   "workpiece": workpiece.to_dict(), "inspection": config.__dict__,
                   "tip_offset_um": fit.offset_um.tolist(), "tip_offset_uncertainty_um": fit.uncertainty_um.tolist(),
                   "tip_fit_dots": fit.dots, "tip_fit_residual_rms_um": fit.residual_rms_um,
+                  "tip_tilt_um": fit.tilt_um, "tip_tilt_uncertainty_um": fit.tilt_uncertainty_um,
                   "calibration": {k: calib_prov.get(k) for k in ("effects", "orientation_objective",
                                                                   "identification_code")}}
     summary["tables"]["dispense_inspection"] = str(write_partition("dispense_inspection", campaign_id, rows,
@@ -195,6 +197,7 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     out_dir = Path(reports_root) / campaign_id / run / "dispensing"
     summary.update(tip_offset_um=fit.offset_um.tolist(), tip_offset_uncertainty_um=fit.uncertainty_um.tolist(),
                    tip_fit_dots=fit.dots, tip_fit_residual_rms_um=fit.residual_rms_um,
+                   tip_tilt_um=fit.tilt_um, tip_tilt_uncertainty_um=fit.tilt_uncertainty_um,
                    report=str(write_dispensing_report(out_dir, rows, verification, fit, summary, simulated,
                                                      config.__dict__)))
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))

@@ -44,15 +44,16 @@ def test_good_dots_centre_diameter_and_nsd(cfg):
     assert abs(np.mean(nsd)) < 0.005
 
 
-@pytest.mark.parametrize("defect, reason", [("satellite", "2 dots in the ring"), ("void", "CoV_I"),
-                                            ("smear", "NSD_r"), ("missing", "no dot")])
-def test_each_defect_is_found(cfg, defect, reason):
+@pytest.mark.parametrize("defect, reasons", [("satellite", ("2 dots in the ring", "circularity")),
+                                             ("void", ("CoV_I",)), ("smear", ("NSD_r",)), ("missing", ("no dot",))])
+def test_each_defect_is_found(cfg, defect, reasons):
     rng = np.random.default_rng(11)
     dot = random_dot(rng, (0.02, -0.03), 0.8, defect)
     for contrast in (40.0, -40.0):
         gray = render_scene(_scene([] if defect == "missing" else [dot]), CROP, Lighting(contrast=contrast), rng)
         result = inspect_ring_image(gray, cfg)
-        assert not result.qualified and reason in result.reason
+        # a satellite close to its dot merges with it in the binary image: then its outline fails
+        assert not result.qualified and any(r in result.reason for r in reasons), result.reason
 
 
 def test_bad_inputs_say_what_is_wrong(cfg):
@@ -112,3 +113,21 @@ def test_inspect_command_prints_the_ring_and_its_dot(tmp_path):
     assert "qualified" in out.output.splitlines()[-1]
     bad = CliRunner().invoke(app, ["inspect", str(tmp_path / "nothing.png")])
     assert bad.exit_code == 2 and "not a readable image" in bad.output
+
+
+def test_lab_request_round_trip_and_manifest_errors(tmp_path):
+    from tasks.dispensing.capture import PLAN_FILE, plan_rows, write_plan
+    from tasks.dispensing.measure import REQUIRED, load_capture_manifest
+
+    centres = np.array([[1.0, 2.0], [3.0, -4.0]])
+    commands = np.arange(10, dtype=float).reshape(2, 5)
+    rows = plan_rows("compensated", centres, commands, commands + 1)
+    assert list(rows["image_id"]) == ["compensated_ring000", "compensated_ring001"]
+    plan = write_plan(tmp_path / "cap", rows)
+    assert plan.name == PLAN_FILE
+    pd.read_csv(plan).to_csv(tmp_path / "cap" / "manifest.csv", index=False)  # the lab's manifest: full frames
+    manifest = load_capture_manifest(tmp_path / "cap")
+    assert set(REQUIRED) <= set(manifest.columns) and (manifest["roi_x0"] == 0).all()
+    pd.read_csv(plan).drop(columns=["image_C_deg"]).to_csv(tmp_path / "cap" / "manifest.csv", index=False)
+    with pytest.raises(ValueError, match=r"manifest\.csv.*image_C_deg"):
+        load_capture_manifest(tmp_path / "cap")

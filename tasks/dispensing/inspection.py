@@ -32,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 
 DEFAULTS_FILE = Path(__file__).with_name("inspection_defaults.toml")
+CANDIDATE_CONTRAST_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -93,8 +94,15 @@ class Region:
     reason: str = ""
 
 
-def _noise_sigma(values: np.ndarray) -> float:
-    return float(1.4826 * np.median(np.abs(values - np.median(values))))
+def smoothed_noise_sigma(gray: np.ndarray, roi: np.ndarray, smoothing_sigma_px: float) -> float:
+    """The noise σ (DN) of the smoothed image inside ``roi``: the raw pixel noise from the robust
+    spread of horizontal neighbour differences (edges and dots are too few to move their median
+    absolute deviation), divided by 2√π·σ, what Gaussian smoothing of white noise leaves of it."""
+    g = gray.astype(np.float64)
+    both = roi[:, 1:] & roi[:, :-1]
+    d = (g[:, 1:] - g[:, :-1])[both]
+    raw = 1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0)
+    return float(raw / (2.0 * np.sqrt(np.pi) * smoothing_sigma_px))
 
 
 def _binary(smooth: np.ndarray, roi: np.ndarray, background: float, threshold: float, bright: bool,
@@ -241,16 +249,16 @@ def measure_region(smooth: np.ndarray, contour: np.ndarray, background: float, p
                   touches_border=_touches(contour, border))
 
 
-def pixel_region(contour: np.ndarray, polarity: str) -> Region:
-    """A region from its pixel contour alone (centroid, area, length; no intensity features), for
-    one cut by the border whose outline cannot be refined."""
+def pixel_region(contour: np.ndarray, polarity: str, touches_border: bool) -> Region:
+    """A region from its pixel contour alone (centroid, area, length; NSD_r and CoV_I NaN, so never
+    qualified), for one whose outline cannot be refined (cut by the border, or not star-shaped)."""
     m = cv2.moments(contour)
     area, per = float(cv2.contourArea(contour)), float(cv2.arcLength(contour, True))
     cx, cy = (m["m10"] / m["m00"], m["m01"] / m["m00"]) if m["m00"] > 0 else contour[0, 0].astype(float)
     return Region(x_px=float(cx), y_px=float(cy), area_px2=area, perimeter_px=per,
                   diameter_px=float(np.sqrt(4 * area / np.pi)),
                   circularity=float(4 * np.pi * area / per ** 2) if per > 0 else float("nan"), nsd_r=float("nan"),
-                  cov_i=float("nan"), polarity=polarity, touches_border=True)
+                  cov_i=float("nan"), polarity=polarity, touches_border=touches_border)
 
 
 def classify(region: Region, cfg: InspectionConfig) -> Region:
@@ -263,6 +271,8 @@ def classify(region: Region, cfg: InspectionConfig) -> Region:
         reasons.append(f"area {region.area_px2:.0f} px² outside [{cfg.area_min_px2:g}, {cfg.area_max_px2:g}]")
     if region.circularity < cfg.circularity_min:
         reasons.append(f"circularity {region.circularity:.3f} < {cfg.circularity_min:g}")
+    if not np.isfinite(region.nsd_r) or not np.isfinite(region.cov_i):
+        reasons.append("outline not measurable")
     if region.nsd_r > cfg.nsd_r_max:
         reasons.append(f"NSD_r {region.nsd_r:.3f} > {cfg.nsd_r_max:g}")
     if region.cov_i > cfg.cov_i_max:
@@ -281,21 +291,27 @@ def inspect_regions(gray: np.ndarray, cfg: InspectionConfig, roi: np.ndarray | N
     roi = np.ones(gray.shape, bool) if roi is None else roi
     inside = smooth[roi]
     background = float(np.median(inside))
-    threshold = cfg.threshold_sigmas * max(_noise_sigma(inside), 0.5)
+    threshold = cfg.threshold_sigmas * max(smoothed_noise_sigma(gray, roi, cfg.smoothing_sigma_px), 0.25)
     smooth = flatten_background(smooth, roi & (np.abs(smooth - background) < threshold))
     # the border: the image edge and the edge of the region of interest
     border = ~cv2.erode(roi.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
                         borderValue=0).astype(bool)
     polarity, _, allc = choose_polarity(smooth, roi, border, background, threshold, cfg)
+    # candidates at a quarter of the contrast at least: a sensitive threshold alone lets the blurred
+    # tails of neighbouring dots merge them in the closing
+    deviation = (smooth[roi] - background) * (1 if polarity == "bright" else -1)
+    contrast = float(np.percentile(deviation, 99.5))
+    if CANDIDATE_CONTRAST_SHARE * contrast > threshold:
+        allc = _contours(_binary(smooth, roi, background, CANDIDATE_CONTRAST_SHARE * contrast,
+                                 polarity == "bright", cfg.morphology_px))
     regions = []
     for c in allc:
         if not cfg.region_min_px2 <= cv2.contourArea(c) <= cfg.region_max_px2:
             continue
         r = measure_region(smooth, c, background, polarity, border, cfg)
-        if r is None and _touches(c, border):
-            r = pixel_region(c, polarity)  # cut by the border: reported, never qualified
-        if r is not None:
-            regions.append(classify(r, cfg))
+        if r is None:  # cut by the border, or an outline the rays cannot follow: reported from its pixels
+            r = pixel_region(c, polarity, _touches(c, border))
+        regions.append(classify(r, cfg))
     return regions, polarity, background
 
 

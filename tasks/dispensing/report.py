@@ -38,7 +38,6 @@ def offsets_figure(rows: pd.DataFrame):
         ax.set_ylabel("δy (µm)", fontsize=7)
         ax.set_title(f"{phase}: dot − ring", fontsize=8)
         ax.legend(fontsize=6)
-    fig.tight_layout()
     return fig
 
 
@@ -53,7 +52,6 @@ def features_figure(rows: pd.DataFrame, config: dict):
         if limits.get(col) is not None:
             ax.axvline(limits[col], color="tab:red", ls="--")
         ax.set_title(col, fontsize=8)
-    fig.tight_layout()
     return fig
 
 
@@ -130,6 +128,8 @@ def write_dispensing_report(out_dir: Path, rows: pd.DataFrame, verification: pd.
           f"From {fit.dots} qualified dots of the compensated phase; dot residual rms {fit.residual_rms_um:.2f} µm. "
           "Added to the model's tool_offset effect (tip frame: x, y across the tool, z along it).", "",
           "| tip axis | offset (µm) | u (µm) |", "|---|---:|---:|", tip, "",
+          f"Fitted beside it, not folded in: a tool-axis error growing as sin A, {fit.tilt_um:+.2f} ± "
+          f"{fit.tilt_uncertainty_um:.2f} µm per unit sin A (docs/dispensing-test.md).", "",
           "## Dot offsets", "", "![dot offsets](figures/offsets.png)", "",
           "## Pass / defect counts", "", _table(counts_table(rows)), "",
           "## Dot features", "", "![features](figures/features.png)", ""]

@@ -60,11 +60,14 @@ def with_tool_offset(model: ErrorModel, offset_um) -> ErrorModel:
 @dataclass(frozen=True)
 class TipFit:
     """The tip offset the dots reveal: ``offset_um`` (3,) added to the model's tool_offset (µm,
-    tip frame), its covariance (3, 3) (µm²), the rms of the post-fit dot residuals (µm), the number
-    of dots used and the model with the offset folded in."""
+    tip frame), its covariance (3, 3) (µm²); ``tilt_um`` ± ``tilt_uncertainty_um``: the part of the
+    tool-axis error that grows as sin A (µm per unit sin A; fitted, not folded in); the rms of the
+    post-fit dot residuals (µm), the number of dots used and the model with the offset folded in."""
 
     offset_um: np.ndarray
     covariance_um2: np.ndarray
+    tilt_um: float
+    tilt_uncertainty_um: float
     residual_rms_um: float
     dots: int
     model: ErrorModel
@@ -80,31 +83,40 @@ def fit_tip_offset(machine: Machine, model: ErrorModel, commands: np.ndarray, ri
     """Fit the constant tool-frame tip offset from dot offsets.
 
     commands: (N, 5) the commands each dot was dispensed at; ring_mm: (N, 2) ring centres and
-    offset_mm: (N, 2) measured dot − ring offsets (mm, workpiece frame). Raises ValueError with
-    fewer than 3 dots or without the spread of A that makes the offset along the tool axis seen."""
+    offset_mm: (N, 2) measured dot − ring offsets (mm, workpiece frame). Beside the constant t, an
+    error along the tool axis growing as sin A is fitted (b sin A): the dots see the tool-axis error
+    only through sin A and along the direction the tool tilts, the same direction a constant tool-y
+    offset moves them, so b sin A · sin A (even in A) would otherwise pass for a y offset of about
+    b·mean(sin² A). It is a nuisance parameter (reported, not folded in: it averages out over poses
+    symmetric in A). Raises ValueError with fewer than 4 dots or without the spread of A that makes
+    the tool axis seen."""
     commands = np.asarray(commands, dtype=float)
-    if len(commands) < 3:
-        raise ValueError(f"the tip fit needs at least 3 qualified dots, got {len(commands)}")
+    if len(commands) < 4:
+        raise ValueError(f"the tip fit needs at least 4 qualified dots, got {len(commands)}")
     measured = np.asarray(ring_mm, float) + np.asarray(offset_mm, float)
-    t = np.zeros(3)
+    sin_a = np.repeat(np.sin(np.deg2rad(commands[:, 3])), 2)
+    t, b = np.zeros(3), 0.0
     for _ in range(iterations):
         base = landing_points(machine, with_tool_offset(model, t), commands)
-        J = np.empty((2 * len(commands), 3))
+        J = np.empty((2 * len(commands), 4))
         for k in range(3):
             step = np.zeros(3)
             step[k] = TIP_FIT_STEP_UM
             moved = landing_points(machine, with_tool_offset(model, t + step), commands)
             J[:, k] = ((moved - base) / (TIP_FIT_STEP_UM * UM)).ravel()  # mm per mm
-        r = (measured - base).ravel() / UM  # µm
-        JtJ = J.T @ J
+        J[:, 3] = J[:, 2] * sin_a  # the landing is linear in a per-pose tool-axis offset
         if np.linalg.cond(J) > MAX_CONDITION:
             raise ValueError("the dots do not fix the tip offset: dispense at more than one A angle")
-        t = t + np.linalg.solve(JtJ, J.T @ r)
+        r = (measured - base).ravel() / UM - J[:, 3] * b  # µm
+        step = np.linalg.solve(J.T @ J, J.T @ r)
+        t, b = t + step[:3], b + step[3]
     final = landing_points(machine, with_tool_offset(model, t), commands)
-    res = (measured - final).ravel() / UM
-    dof = max(len(res) - 3, 1)
+    res = (measured - final).ravel() / UM - J[:, 3] * b
+    dof = max(len(res) - 4, 1)
     sigma2 = float(res @ res / dof)
-    return TipFit(offset_um=t, covariance_um2=sigma2 * np.linalg.inv(JtJ), residual_rms_um=float(np.sqrt(sigma2)),
+    cov = sigma2 * np.linalg.inv(J.T @ J)
+    return TipFit(offset_um=t, covariance_um2=cov[:3, :3], tilt_um=float(b),
+                  tilt_uncertainty_um=float(np.sqrt(cov[3, 3])), residual_rms_um=float(np.sqrt(sigma2)),
                   dots=len(commands), model=with_tool_offset(model, t))
 
 

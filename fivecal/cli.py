@@ -231,7 +231,10 @@ def detect(
     if debug_image is not None:
         from tasks.detection.debug_image import draw_detection
 
-        cv2.imwrite(str(debug_image), draw_detection(grey, result, plate))
+        if not cv2.imwrite(str(debug_image), draw_detection(grey, result, plate)):
+            typer.echo(f"error: {debug_image}: cannot write the debug image (folder missing or not an image "
+                       "extension OpenCV writes)", err=True)
+            raise typer.Exit(2)
     rc = plate.row_col()
     ellipse = result.ellipse_centres if result.ellipse_centres is not None else result.centres
     dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "ellipse_u_px": float(eu),
@@ -242,6 +245,7 @@ def detect(
         typer.echo(json.dumps({"image": str(image), "ok": result.ok, "reason": result.reason,
                                "detector": result.detector, "elapsed_s": result.elapsed_s,
                                "rotation_deg": result.rotation_deg, "n_candidates": result.n_candidates,
+                               "orientation_ambiguous": result.orientation_ambiguous,
                                "pixel_origin": "centre of the top-left pixel",
                                "dots": dots}, indent=1))
     else:

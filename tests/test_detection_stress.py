@@ -20,6 +20,7 @@ from tasks.detection.stress import STRESS_CASES, errors_up_to_symmetry, render_s
 
 CASES = {c.name: c for c in STRESS_CASES}
 SMALL_PHONE = replace(CASES["phone-12mp"], name="phone-3mp", width=1512, height=2016, dot_px=75.0)
+GARDEN = replace(CASES["phone-garden"], name="phone-garden-3mp", width=1512, height=2016, dot_px=75.0)
 LARGE_DOTS = replace(CASES["phone-400px"], name="phone-200px", width=1512, height=2016, dot_px=200.0)
 
 
@@ -36,6 +37,7 @@ def _plate(case):
     (CASES["uneven-light"], 0.05, 0.1),
     (CASES["light-tilt"], 0.05, 0.1),
     (SMALL_PHONE, 0.05, 0.1),
+    (GARDEN, 0.05, 0.1),
     (LARGE_DOTS, 0.05, 0.1),
 ], ids=lambda v: getattr(v, "name", None))
 def test_stress_case_is_found_and_labelled(case, median_px, max_px):
@@ -83,6 +85,9 @@ def test_debug_image_shows_the_verdict_and_the_cli_writes_it(tmp_path):
                                       "--diameter-mm", "4", "--debug-image", str(out)])
     assert result.exit_code == 0, result.output
     assert cv2.imread(str(out)).shape[2] == 3
+    bad = CliRunner().invoke(app, ["detect", str(path), "--rows", "4", "--cols", "3", "--pitch-mm", "6",
+                                   "--diameter-mm", "4", "--debug-image", str(tmp_path / "no" / "debug.png")])
+    assert bad.exit_code == 2 and "debug.png" in bad.output
 
 
 def test_region_contours_alone_find_the_grid():
@@ -129,3 +134,21 @@ def test_candidate_fit_far_off_the_image_is_no_rim():
     _, _, _, ratio = fit_candidates(dirs, centres, np.array([20.0, 20.0]), True, RRHTParams())
     assert ratio[0] == 0.0
     assert detect_grid(image, _plate(CASES["tilt-50"]), "rrht").ok
+
+
+def test_appearance_test_keeps_dots_and_drops_rings_and_shadow_edges():
+    """tasks.detection.verify: a filled dot passes, also with a shadow edge across it; the rim of
+    a ring (a letter O) and a disc on a patch of its own grey level do not."""
+    from tasks.detection.verify import dot_fill
+
+    img = np.full((200, 400), 210, np.uint8)
+    cv2.circle(img, (50, 100), 20, 30, -1, cv2.LINE_AA)  # a dot
+    cv2.circle(img, (150, 100), 20, 30, 4, cv2.LINE_AA)  # a ring
+    img[:, 230:300] = 120  # a grey patch …
+    cv2.circle(img, (265, 100), 20, 120, -1)  # … holding a disc of the same grey
+    cv2.circle(img, (350, 100), 20, 30, -1, cv2.LINE_AA)  # a dot …
+    img[:, 362:] = (img[:, 362:] * 0.5).astype(np.uint8)  # … a third of its surround in shadow
+    centres = np.array([[50.0, 100.0], [150.0, 100.0], [265.0, 100.0], [350.0, 100.0]])
+    fill_in, fill_out = dot_fill(img, centres, np.full((4, 2), 20.0), np.zeros(4), True)
+    passed = (fill_in >= 0.9) & (fill_out >= 0.85)
+    assert passed.tolist() == [True, False, False, True]

@@ -8,8 +8,8 @@
 
 Without a scale hint the coarse search runs over bands of dot size until one yields the grid
 (:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
-1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 6 px up
-at full resolution. Candidates must look like a filled dot on a clear ring of plate
+1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 12 px up
+at half and 6–16 px at full resolution. Candidates must look like a filled dot on a clear ring of plate
 (:mod:`tasks.detection.verify`); when the Hough circles give no grid, dark (light) regions
 against their local mean are added (:mod:`tasks.detection.blobs`). A view without exactly one
 complete rows × cols window is refused with the reason (:mod:`tasks.detection.grid`): a wrong
@@ -95,8 +95,9 @@ LARGE_DOT_BAND = (28.0, 3.5)
 grid that fills a phone photograph or a webcam frame), on an image downsampled so that they
 are again 6 to 50 coarse px across; it overlaps the first band by a factor 2."""
 SMALL_DOT_PX = 6.0
-"""Third search, on a large image whose first band starts above this: dots from 6 px to twice
-the first band's smallest, at full resolution (a distant plate in a phone photograph)."""
+"""Last searches, on a large image whose first band starts above 8 px (a distant plate in a phone
+photograph): dots from 12 px to twice the first band's smallest at half resolution, then from
+6 to 16 px at full resolution."""
 
 
 def search_bands(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float | None, target_d: float,
@@ -105,7 +106,7 @@ def search_bands(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float 
 
     Without a hint the first band covers dots of 1/128 to 1/14 of the longer side; when it finds
     no grid, :data:`LARGE_DOT_BAND` is searched on a 4× coarser image, then (on images whose
-    first band starts above 8 px) the small dots of :data:`SMALL_DOT_PX` at full resolution.
+    first band starts above 8 px) the small dots of :data:`SMALL_DOT_PX`.
     """
     first = search_scale(shape, plate, px_per_mm_hint, target_d, coarse_width)
     if px_per_mm_hint is not None and px_per_mm_hint > 0:
@@ -113,8 +114,8 @@ def search_bands(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float 
     big = max(shape)
     lo, hi = LARGE_DOT_BAND
     bands = [first, (max(1, round(big / (coarse_width / 4))), big / lo, big / hi)]
-    if first[1] > 8.0:
-        bands.append((1, SMALL_DOT_PX, 2.0 * first[1]))
+    if first[1] > 8.0:  # small dots: at half resolution down to 12 px, then at full resolution
+        bands += [(2, 2 * SMALL_DOT_PX, 2.0 * first[1]), (1, SMALL_DOT_PX, 2.7 * SMALL_DOT_PX)]
     return bands
 
 

@@ -10,8 +10,9 @@ detect`` reads a colour file). Ground truth is :func:`tasks.render.true_dot_cent
 projected 3-D dot centres, distortion included).
 
 :data:`STRESS_CASES` is the named set the tests and ``bench/bench_stress.py`` run: large dots
-on a 12 MP photograph, a fisheye webcam frame, small distant dots, 50° of perspective, uneven
-light, both polarities. Frames: image px (u right, v down); plate mm as in :mod:`tasks.plate`.
+on a 12 MP photograph (one before a busy, sunlit background), a fisheye webcam frame, small
+distant dots, 50° of perspective, uneven light, both polarities. Frames: image px (u right,
+v down); plate mm as in :mod:`tasks.plate`.
 """
 
 from __future__ import annotations
@@ -40,7 +41,9 @@ class StressCase:
     k1, k2: radial distortion (OpenCV model; strong barrel ≈ −0.35, 0.1); clutter: items drawn
     around the sheet; texture: background blotches and paper grain; shadow: darkest factor of a
     soft shadow edge across the plate (1 = none); colour: render a colour file; jpeg: JPEG
-    quality (0 = none); defocus_px: extra Gaussian blur σ.
+    quality (0 = none); defocus_px: extra Gaussian blur σ; texture_scale (× dot_px) and
+    texture_contrast (DN, σ) of the background blotches; sheet_shade: factor on the sheet alone
+    (a sheet in the shade before a sunlit garden).
     """
 
     name: str
@@ -63,6 +66,9 @@ class StressCase:
     defocus_px: float = 0.0
     gradient: float = 0.1
     vignetting: float = 0.1
+    texture_scale: float = 3.0
+    texture_contrast: float = 55.0
+    sheet_shade: float = 1.0
     seed: int = 0
     plate: DotPlate = field(default=ISSUE_PLATE)
 
@@ -149,10 +155,10 @@ def render_stress_case(case: StressCase) -> tuple[np.ndarray, np.ndarray]:
     cv2.fillPoly(mask, [np.round(plate_outline_px(case) * 16).astype(np.int32)], 255, cv2.LINE_AA, shift=4)
     scale = max(case.width, case.height)
     if case.texture:  # blotchy background (foliage, a desk) and paper grain on the sheet
-        blotch = _smooth_noise(rng, grey.shape, 3.0 * case.dot_px)
-        bg = np.clip(90.0 + 55.0 * blotch, 0, 255)
+        blotch = _smooth_noise(rng, grey.shape, case.texture_scale * case.dot_px)
+        bg = np.clip(90.0 + case.texture_contrast * blotch, 0, 255)
         grain = 1.0 + 0.03 * _smooth_noise(rng, grey.shape, max(2.0, scale / 400))
-        grey = np.where(mask > 0, grey * grain, bg + (grey - 90.0))
+        grey = np.where(mask > 0, grey * grain * case.sheet_shade, bg + (grey - 90.0))
     img = np.clip(grey, 0, 255).astype(np.uint8)
     if case.clutter:
         _draw_clutter(img, mask, case, rng)
@@ -186,6 +192,8 @@ STRESS_CASES: tuple[StressCase, ...] = (
                colour=True, jpeg=85, shadow=0.6, gradient=0.4, seed=1),
     StressCase("phone-12mp-light", 3024, 4032, 150.0, tilt_deg=20.0, spin_deg=-8.0, clutter=40, texture=True,
                colour=True, jpeg=85, dark_dots=False, seed=2),
+    StressCase("phone-garden", 3024, 4032, 150.0, tilt_deg=8.0, spin_deg=-4.0, texture=True, texture_scale=0.3,
+               texture_contrast=120.0, sheet_shade=0.55, jpeg=85, colour=True, seed=12),
     StressCase("phone-20px", 3024, 4032, 20.0, tilt_deg=25.0, spin_deg=10.0, clutter=60, texture=True,
                colour=True, jpeg=85, shadow=0.6, seed=11),
     StressCase("phone-400px", 3024, 4032, 400.0, tilt_deg=5.0, clutter=20, texture=True, colour=True, jpeg=85,

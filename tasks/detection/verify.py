@@ -5,8 +5,10 @@ shadow edge): the votes only say that edge pixels lie on a circle. A printed dot
 uniform disc of its own grey level on a uniform ring of the plate's, for at least half a dot
 radius around it (a plate's gap between dots is at least its radius, pitch ≥ 1.5 diameters).
 Grey levels are sampled (bilinear) on ellipses scaled from each candidate's own: inside at
-0–0.65 of the axes, outside at 1.3 and 1.5; the threshold is halfway between the medians of the
-two. Units: px of the image the candidates were found on; angles rad from +u towards +v.
+0–0.65 of the axes, outside at 1.3 and 1.5. Inside, samples are compared with the level halfway
+between the medians of the two; outside, each with the dot's own level just inside the rim on
+the same ray, so that a shadow edge across a dot does not fail it. Units: px of the image the
+candidates were found on; angles rad from +u towards +v.
 """
 
 from __future__ import annotations
@@ -23,9 +25,10 @@ N_ANGLES = 24
 
 def dot_fill(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
              dark_dots: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(inside, outside) fractions (K,) of samples on the dot's side of the threshold inside the
-    candidate ellipses (centres (K, 2), semi-axes (K, 2), angle (K,)) and on the plate's side
-    outside them; samples off the image are left out (a fraction is 1 without samples)."""
+    """(inside, outside) fractions (K,) of the samples inside the candidate ellipses (centres
+    (K, 2), semi-axes (K, 2), angle (K,)) on the dot's side of the halfway threshold, and of the
+    samples outside them that step up (down) from the dot on their ray by a third of the dot's
+    contrast; samples off the image are left out (a fraction is 1 without samples)."""
     if len(centres) == 0:
         return np.zeros(0), np.zeros(0)
     ang = np.arange(N_ANGLES) * (2 * np.pi / N_ANGLES)
@@ -42,8 +45,10 @@ def dot_fill(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np
     g = cv2.remap(image, u.reshape(k, s * a), v.reshape(k, s * a), cv2.INTER_LINEAR,
                   borderMode=cv2.BORDER_REPLICATE).reshape(k, s, a).astype(float)
     n_in = len(INNER_SCALES)
+    rim_in = np.where(inside_img[:, n_in - 1], g[:, n_in - 1], np.nan)  # (K, A) just inside the rim
     g_in = np.where(inside_img[:, :n_in], g[:, :n_in], np.nan).reshape(k, -1)
-    g_out = np.where(inside_img[:, n_in:], g[:, n_in:], np.nan).reshape(k, -1)
+    g_out3 = np.where(inside_img[:, n_in:], g[:, n_in:], np.nan)  # (K, S_out, A)
+    g_out = g_out3.reshape(k, -1)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a candidate with no sample in the image
         m_in = np.nanmedian(g_in, axis=1)
@@ -51,7 +56,10 @@ def dot_fill(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np
         thr = 0.5 * (m_in + m_out)[:, None]
         sign = 1.0 if dark_dots else -1.0
         dot_side = sign * (thr - g_in) > 0
-        plate_side = sign * (g_out - thr) > 0
+        # outside: brighter (darker) than the dot just inside the rim on the same ray, by a third of
+        # the dot's contrast: a shadow edge or a light gradient across the dot scales both alike
+        step = sign * (g_out3 - rim_in[:, None, :])
+        plate_side = (step > (1.0 / 3.0) * sign * (m_out - m_in)[:, None, None]).reshape(k, -1)
         n_i = np.isfinite(g_in).sum(axis=1)
         n_o = np.isfinite(g_out).sum(axis=1)
         fill_in = np.where(n_i > 0, dot_side.sum(axis=1) / np.maximum(n_i, 1), 1.0)

@@ -140,8 +140,9 @@ def _linearised_refit(machine: Machine, result: CalibrationResult, measurements:
 
 def _joint_refit(machine: Machine, result: CalibrationResult, measurements: Measurements) -> Callable[..., tuple]:
     """The re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`):
-    that step's Gauss–Newton from ``result``'s solution on the moved poses, its smoothers' roughness
-    held or (reselect_smoothing) chosen again by GCV on the moved sweeps, as the calibration chooses it."""
+    that step's Gauss–Newton from ``result``'s solution on the moved poses, its penalties held or
+    (reselect_smoothing) set again from the moved sweeps (GCV's roughness and the positions' variance),
+    as the calibration sets them."""
     from tasks.identification.joint_fit import JointStep, position_variances
 
     fit = result.pige.fit
@@ -152,7 +153,8 @@ def _joint_refit(machine: Machine, result: CalibrationResult, measurements: Meas
     def refit(m: Measurements, reselect_smoothing: bool = False) -> tuple:
         solver = step
         if reselect_smoothing:
-            solver = step.with_smoothing(extract_pdges(machine, extraction, m).smoothing)
+            again = extract_pdges(machine, extraction, m)
+            solver = step.with_penalty(again.smoothing, position_variances(again.table))
         x, profiles = solver.solve(m)
         return x, solver.model_at(x, profiles)
 

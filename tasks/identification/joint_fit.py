@@ -202,13 +202,15 @@ class JointStep:
     def model_at(self, x: np.ndarray, profiles: dict[str, TabulatedProfile]) -> ErrorModel:
         return apply_parameters(replace(self.skeleton, pdge={**self.skeleton.pdge, **profiles}), self.specs, x)
 
-    def with_smoothing(self, smoothing: dict[str, np.ndarray]) -> JointStep:
-        """The same system with the penalties of the roughness ``smoothing`` ({axis: (6,) λ})."""
+    def with_penalty(self, smoothing: dict[str, np.ndarray], variances: dict[str, np.ndarray]) -> JointStep:
+        """The same system with the penalties of the roughness ``smoothing`` ({axis: (6,) λ}) and the
+        position variances ``variances`` ({axis: (6,)}, file units²) of another extraction."""
         axes = []
         for a in self.axes:
             lam = np.nan_to_num(np.asarray(smoothing.get(a.axis, np.full(6, np.nan)), float), nan=0.0)
-            P = np.kron(penalty_matrix(a.positions), np.diag(lam / a.variance))
-            axes.append(replace(a, penalty=a.G.T @ P @ a.G, penalty_full=P))
+            var = np.maximum(np.asarray(variances[a.axis], float), 1e-12)
+            P = np.kron(penalty_matrix(a.positions), np.diag(lam / var))
+            axes.append(replace(a, penalty=a.G.T @ P @ a.G, penalty_full=P, variance=var))
         return replace(self, axes=axes, _factor=None)
 
     def factor(self) -> np.ndarray:

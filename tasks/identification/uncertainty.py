@@ -26,10 +26,11 @@ were the only noisy input and the PDGE profiles were exact. Two inputs it holds 
   location terms (δAY spread 14 times, βCY 3.4 times that with the roughness held, in full
   re-calibrations from re-drawn pixel noise; docs/calibrate.md).
 
-A re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`)
-is that step's Gauss–Newton from the identified solution (:func:`_joint_refit`). Otherwise (a fit
-with added effects) it is the alternation of :func:`~tasks.identification.pige_identification.alternate`
-linearised about the identified solution: it starts there and replaces each constant fit by a
+A re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`;
+every calibration does, with or without added effects) is that step's Gauss–Newton from the
+identified solution (:func:`_joint_refit`). Without it (``CalibrationResult.joint`` false) it is the
+alternation of :func:`~tasks.identification.pige_identification.alternate` linearised about the
+identified solution: it starts there and replaces each constant fit by a
 Gauss–Newton step with the fit's own Jacobian (:func:`_linearised_refit`); the camera re-fits hold
 the PDGE smoothers' roughness (:mod:`tasks.identification.smoothing`), the noise draws choose it
 again. It measures how this estimator moves with its inputs (the 33 re-fits of the demo take
@@ -140,8 +141,9 @@ def _linearised_refit(machine: Machine, result: CalibrationResult, measurements:
 
 def _joint_refit(machine: Machine, result: CalibrationResult, measurements: Measurements) -> Callable[..., tuple]:
     """The re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`):
-    that step's Gauss–Newton from ``result``'s solution on the moved poses, its smoothers' roughness
-    held or (reselect_smoothing) chosen again by GCV on the moved sweeps, as the calibration chooses it."""
+    that step's Gauss–Newton from ``result``'s solution on the moved poses, its penalties held or
+    (reselect_smoothing) set again from the moved sweeps (GCV's roughness and the positions' variance),
+    as the calibration sets them."""
     from tasks.identification.joint_fit import JointStep, position_variances
 
     fit = result.pige.fit
@@ -152,7 +154,8 @@ def _joint_refit(machine: Machine, result: CalibrationResult, measurements: Meas
     def refit(m: Measurements, reselect_smoothing: bool = False) -> tuple:
         solver = step
         if reselect_smoothing:
-            solver = step.with_smoothing(extract_pdges(machine, extraction, m).smoothing)
+            again = extract_pdges(machine, extraction, m)
+            solver = step.with_penalty(again.smoothing, position_variances(again.table))
         x, profiles = solver.solve(m)
         return x, solver.model_at(x, profiles)
 

@@ -85,7 +85,7 @@ def explained_sentence(camera: str, direction: str, cand: Candidate, spec: str, 
             f"of it ({p_text(p)}, ΔBIC {delta_bic:+.0f}{cv})")
 
 
-def residual_follows_sentence(trends, camera: str, limit: int = 3) -> str | None:
+def residual_follows_sentence(trends, camera: str, limit: int = 5) -> str | None:
     """When no candidate is accepted: the variables ``camera``'s residual follows, from the trend tests
     of :func:`tasks.residual_trends.trend_tests` (``trends``, the ``residual_trends`` table): the
     significant panels, smallest p-value first, one per variable, at most ``limit``, each with its

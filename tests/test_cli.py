@@ -33,7 +33,9 @@ def test_truth_stats_says_how_far_a_context_effect_moves_the_tip():
 
 
 def test_simulate_refuses_a_missing_effect_module_before_doing_anything(tmp_path):
-    result = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--effect-module", str(tmp_path / "nope.py")])
+    # a wide terminal: the error box would otherwise wrap the long temporary path inside the file name
+    result = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--effect-module", str(tmp_path / "nope.py")],
+                           env={"COLUMNS": "1000"})
     assert result.exit_code != 0
     assert "nope.py" in result.output
     assert not (tmp_path / "x").exists()

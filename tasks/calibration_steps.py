@@ -81,16 +81,18 @@ def propagate_task(machine: Machine, measurements: Measurements, result: Calibra
     return propagate_uncertainty(machine, result, measurements, sens, covs, draws=draws)
 
 
-def _context_key(context: PoseContext | None):
-    """A context's content for a cache key; nothing for none, so that keys without one stay as they were."""
-    return [] if context is None else [np.column_stack([context.approach, context.time_s,
-                                                        context.temperature_c]).round(9).tolist()]
+def _context_key(context: PoseContext | None, model: ErrorModel):
+    """A context's content for a cache key, when ``model`` has effects (only they read it); nothing
+    otherwise, so that the keys of models without effects stay as they were whatever the context."""
+    if context is None or not model.effects:
+        return []
+    return [np.column_stack([context.approach, context.time_s, context.temperature_c]).round(9).tolist()]
 
 
 @task(name="compensate", persist_result=True,
       cache_key_fn=lambda c, p: _key("compensate", p["model"].to_dict(), p["commands"].tolist(),
                                      p["machine"].source, p.get("orientation", "full"),
-                                     *_context_key(p.get("context"))))
+                                     *_context_key(p.get("context"), p["model"])))
 def compensate_task(machine: Machine, model: ErrorModel, commands: np.ndarray, orientation: str = "full",
                     context: PoseContext | None = None) -> Compensation:
     """Compensated commands of the validation poses by inverse kinematics of the identified model,

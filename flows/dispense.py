@@ -62,9 +62,9 @@ def _capture(folder: Path, campaign: Path, rows: pd.DataFrame, workpiece: Workpi
         folder = Path(dispense_capture_task(campaign, folder, rows, workpiece, seed))
     elif not (folder / "manifest.csv").is_file():
         plan = write_plan(folder, rows)
-        logger.warning(f"dispensing capture requested: dispense and image the {len(rows)} rings listed in {plan}, "
-                       f"write images/ and manifest.csv into {folder} (docs/dispensing-test.md), then run "
-                       f"dispense-test again")
+        logger.warning(f"dispensing capture requested: dispense one dot and take one image per row "
+                       f"({len(rows)} rows) of {plan}, write images/ and manifest.csv into {folder} "
+                       f"(docs/dispensing-test.md), then run dispense-test again")
         return None
     inspected = inspect_task(folder, config)
     manifest = load_capture_manifest(folder)

@@ -252,8 +252,12 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
                          f"poses that would identify it: {identifying_poses(e)}.")
     truth_fit = None
     if truth is not None:  # the truth in the fit's gauge: the same calibration of its exact poses
-        from tasks.identification.pige_identification import calibrate
+        from tasks.identification.pige_identification import alternate, calibrate
 
         clean = synthetic_measurements(machine, truth, measurements)
-        truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
+        if truth.effects:
+            truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
+        else:  # the alternation, as this fit's (the joint step is not part of a fit with effects)
+            clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
+            _, truth_fit, _ = alternate(machine, ErrorModel(), clean, clean_poses, const_specs)
     return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)

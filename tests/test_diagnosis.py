@@ -201,17 +201,16 @@ def test_an_added_effect_the_poses_cannot_identify_is_warned_about_with_the_pose
 def test_an_added_effects_fitted_amplitude_carries_the_propagated_uncertainty_that_covers_the_truth(
         machine, frame):
     """calibrate --add-effect with a backlash of X, started at zero, on a campaign that hides 10 µm of
-    it: the fit ends with the joint step, whose covariance carries the PDGE profiles' noise (the
-    alternation's LM, which held them exact, put the amplitude about 5 of its u from the truth); the
-    propagation of step 4 (noise drawn through the joint step, its penalty set again per draw) agrees
-    with it within a factor of two (0.042 against 0.034 µm) and the truth lies within 3u. Pose level:
-    no camera intrinsics, so the noise part is the whole of it."""
+    it: the LM's own uncertainty treats the PDGE profiles as exact and puts the fitted amplitude about
+    5 of its u from the truth; the propagation of step 4 (noise drawn through the effect fit's
+    extraction and fit) widens u about fourfold and the truth lies within 3u. Pose level: no camera
+    intrinsics, so the noise part is the whole of it."""
     meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=10")])
     refit = calibrate(machine, meas, base=ErrorModel(effects=[parse_effect("backlash:axis=X,amount_um=0")]))
     prop = propagate_uncertainty(machine, refit, meas)
     row = refit.pige_table(prop).set_index("name").loc["backlash:amount_um"]
     assert row.identifiable and row.uncertainty == pytest.approx(row.uncertainty_noise)
-    assert 0.5 < row.uncertainty / row.uncertainty_fit < 2.0, (row.uncertainty, row.uncertainty_fit)
+    assert row.uncertainty > 2.0 * row.uncertainty_fit, (row.uncertainty, row.uncertainty_fit)
     assert abs(row.value - 10.0) < 3.0 * row.uncertainty, (row.value, row.uncertainty)
     assert row.note == f"{row.value / row.uncertainty:.1f}u from zero"
     assert np.isfinite(prop.noise).all() and len(prop.noise_models) == NOISE_DRAWS

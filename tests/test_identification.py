@@ -286,15 +286,12 @@ def test_expected_tip_errors_are_the_tip_changes_the_model_uncertainty_makes(mac
     assert tool_spun.max() < 1e-3
 
 
-def test_the_smoother_gives_scipys_fit_and_reaches_the_straight_line_gcv_asks_for():
-    """tasks.identification.smoothing evaluates the smoothing spline in closed form: at the λ it chose,
-    the fitted values are scipy's make_smoothing_spline's with that λ, and that λ minimises GCV over
-    the whole family of fits (no roughness of a fine grid does better). With pure noise about a line,
-    GCV asks for the line itself, which scipy's search over (0, n) cannot reach on a 1 mm grid (it
-    keeps 7.6 degrees of freedom of the noise, docs/calibrate.md)."""
+def test_the_smoother_chooses_scipys_roughness_and_gives_its_fit():
+    """tasks.identification.smoothing evaluates GCV in closed form; the λ and the fitted values are
+    scipy's make_smoothing_spline's (its GCV) to the tolerance of the λ search."""
     from scipy.interpolate import make_smoothing_spline
 
-    from tasks.identification.smoothing import SplineBasis, smooth
+    from tasks.identification.smoothing import smooth
 
     rng = np.random.default_rng(1)
     for n in (5, 11, 50):
@@ -302,19 +299,10 @@ def test_the_smoother_gives_scipys_fit_and_reaches_the_straight_line_gcv_asks_fo
         w = rng.uniform(0.5, 2.0, n)
         Y = np.column_stack([np.sin(x) + 0.1 * rng.standard_normal(n) for _ in range(3)]) * 1e-3
         ours, lam = smooth(x, Y, w)
-        ref = np.column_stack([make_smoothing_spline(x, Y[:, k], w=w / w.mean(), lam=lam[k])(x) for k in range(3)])
-        assert np.abs(ours - ref).max() <= 1e-6 * np.abs(ref).max(), n
-        basis = SplineBasis.of(x, w / w.mean())
-        for k in range(3):
-            grid = np.linspace(*basis.roughness_span(), 400)
-            assert basis.gcv(Y[:, k], np.log10([lam[k]]))[0] <= basis.gcv(Y[:, k], grid).min() * (1 + 1e-6)
+        ref = np.column_stack([make_smoothing_spline(x, Y[:, k], w=w / w.mean())(x) for k in range(3)])
+        assert np.abs(ours - ref).max() <= 1e-5 * np.abs(ref).max(), n
         held, _ = smooth(x, 2.0 * Y, w, lam)  # λ held: a linear smoother
         np.testing.assert_allclose(held, 2.0 * ours, rtol=1e-12, atol=1e-15)
-    x = np.arange(50.0) - 25.0  # a linear axis' sweep, mm
-    y = 0.3 * x + 70.0 * rng.standard_normal(x.size)  # arcsec: a tilt measured to 70″ per image
-    fitted, _ = smooth(x, y[:, None], np.ones(x.size))
-    line = np.polyval(np.polyfit(x, y, 1), x)
-    assert np.abs(fitted[:, 0] - line).max() < 0.05 * 70.0
 
 
 def _focal_like_sensitivity(meas: Measurements, camera: str) -> np.ndarray:

@@ -212,20 +212,16 @@ def _join_phases(split: list[Effect], pairs) -> list[Effect]:
 
 def calibrate_with_effects(machine: Machine, measurements: Measurements, base: ErrorModel,
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
-                           rounds: int = ROUNDS, penalty_of=None) -> CalibrationResult:
+                           rounds: int = ROUNDS) -> CalibrationResult:
     """The calibration of :func:`tasks.identification.pige_identification.calibrate` with the parameters
     of ``base.effects`` fitted too (their values in ``base`` are the starting point). The pige table
     lists them with kind "effect"; ``notes`` says which the poses cannot identify and what would.
-    Runs with one BLAS thread (many small products; two contending threads are far slower). The
-    alternation of extraction and coupled fit is followed by the joint step over constants, effects'
-    parameters and profiles (:mod:`tasks.identification.joint_fit`), as the calibration without
-    effects is; penalty_of: the extraction whose smoothers set its penalties (the truth's exact poses
-    take the noisy fit's)."""
+    Runs with one BLAS thread (many small products; two contending threads are far slower)."""
     with threadpool_limits(limits=1):
-        return _calibrate_with_effects(machine, measurements, base, truth, specs, rounds, penalty_of)
+        return _calibrate_with_effects(machine, measurements, base, truth, specs, rounds)
 
 
-def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds, penalty_of=None) -> CalibrationResult:
+def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -> CalibrationResult:
     const_specs = specs or default_parameters()
     poses = measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
     effects = list(base.effects)
@@ -247,10 +243,6 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds, p
         if np.all(np.abs(fit.fit.x - before) <= CONVERGED * u):
             break
     pdge = extract_pdges(machine, ext, imaging_corrected(machine, ext, measurements), truth)  # the table
-    from tasks.identification.joint_fit import joint_refine
-
-    skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
-    pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit, penalty_of=penalty_of)
     notes = []
     for i, s in enumerate(specs_e):
         if not fit.fit.identifiable[n_const + i]:
@@ -260,16 +252,12 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds, p
                          f"poses that would identify it: {identifying_poses(e)}.")
     truth_fit = None
     if truth is not None:  # the truth in the fit's gauge: the same calibration of its exact poses
-        from tasks.identification.pige_identification import JOINT_START_ROUNDS, alternate
+        from tasks.identification.pige_identification import alternate, calibrate
 
         clean = synthetic_measurements(machine, truth, measurements)
-        truth_base = ErrorModel(effects=list(truth.effects))
-        if truth_base.effects:
-            truth_fit = calibrate_with_effects(machine, clean, truth_base, specs=const_specs, penalty_of=pdge).pige
-        else:  # the calibration without effects, with this fit's smoothers (exact repeats have no variance)
+        if truth.effects:
+            truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
+        else:  # the alternation, as this fit's (the joint step is not part of a fit with effects)
             clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
-            clean_pdge, truth_fit, _ = alternate(machine, truth_base, clean, clean_poses, const_specs,
-                                                 rounds=JOINT_START_ROUNDS, smoothing=pdge.smoothing)
-            _, truth_fit, _ = joint_refine(machine, truth_base, clean, clean_poses, clean_pdge, truth_fit,
-                                           penalty_of=pdge)
-    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True)
+            _, truth_fit, _ = alternate(machine, ErrorModel(), clean, clean_poses, const_specs)
+    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)

@@ -26,11 +26,10 @@ were the only noisy input and the PDGE profiles were exact. Two inputs it holds 
   location terms (δAY spread 14 times, βCY 3.4 times that with the roughness held, in full
   re-calibrations from re-drawn pixel noise; docs/calibrate.md).
 
-A re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`;
-every calibration does, with or without added effects) is that step's Gauss–Newton from the
-identified solution (:func:`_joint_refit`). Without it (``CalibrationResult.joint`` false) it is the
-alternation of :func:`~tasks.identification.pige_identification.alternate` linearised about the
-identified solution: it starts there and replaces each constant fit by a
+A re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`)
+is that step's Gauss–Newton from the identified solution (:func:`_joint_refit`). Otherwise (a fit
+with added effects) it is the alternation of :func:`~tasks.identification.pige_identification.alternate`
+linearised about the identified solution: it starts there and replaces each constant fit by a
 Gauss–Newton step with the fit's own Jacobian (:func:`_linearised_refit`); the camera re-fits hold
 the PDGE smoothers' roughness (:mod:`tasks.identification.smoothing`), the noise draws choose it
 again. It measures how this estimator moves with its inputs (the 33 re-fits of the demo take

@@ -137,7 +137,9 @@ class CalibrationResult:
     PIGEs, constants, mounts, effects). truth_pige: the same fit on noise-free truth (simulated only).
     extraction_model: the model the PDGEs were extracted with (the base, its effects at their fitted
     values). notes: warnings of the fit in words (e.g. an effect these poses cannot identify). joint: the
-    profiles and constants come from the joint step (:mod:`tasks.identification.joint_fit`)."""
+    profiles and constants come from the joint step (:mod:`tasks.identification.joint_fit`).
+    alternation: for a joint result, the alternation's converged solution it started from (None: the
+    diagnosis computes it, :func:`tasks.diagnosis.linearisation.alternation_of`)."""
 
     pdge: PdgeResult
     pige: PigeFit
@@ -146,6 +148,7 @@ class CalibrationResult:
     extraction_model: ErrorModel | None = None
     notes: list[str] = field(default_factory=list)
     joint: bool = False
+    alternation: CalibrationResult | None = None
 
     @property
     def model(self) -> ErrorModel:

@@ -210,6 +210,29 @@ def _join_phases(split: list[Effect], pairs) -> list[Effect]:
     return out
 
 
+def _keep_unidentified(fit, identifiable: np.ndarray):
+    """``fit`` (a PigeFit) with the parameters whose ``identifiable`` (P,) is false reported
+    unidentifiable: the joint step's closing LM holds the profiles fixed and cannot see that they
+    absorb an effect; the coupled fit, whose profiles move with it, can."""
+    ok = fit.fit.identifiable & identifiable
+    cov = fit.fit.covariance.copy()
+    cov[~ok, :] = np.nan
+    cov[:, ~ok] = np.nan
+    return replace(fit, fit=replace(fit.fit, identifiable=ok, covariance=cov))
+
+
+def _joint_truth(machine: Machine, clean: Measurements, specs: list[ParamSpec], pdge) -> object:
+    """The truth's exact poses ``clean`` calibrated as calibrate() does for its truth gauge: the
+    alternation's start and the joint step, with the noisy fit's smoothers (``pdge``)."""
+    from tasks.identification.joint_fit import joint_refine
+    from tasks.identification.pige_identification import JOINT_START_ROUNDS, alternate
+
+    poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
+    clean_pdge, fit, _ = alternate(machine, ErrorModel(), clean, poses, specs, rounds=JOINT_START_ROUNDS,
+                                   smoothing=pdge.smoothing)
+    return joint_refine(machine, ErrorModel(), clean, poses, clean_pdge, fit, penalty_of=pdge)[1]
+
+
 def calibrate_with_effects(machine: Machine, measurements: Measurements, base: ErrorModel,
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
                            rounds: int = ROUNDS) -> CalibrationResult:
@@ -243,6 +266,14 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
         if np.all(np.abs(fit.fit.x - before) <= CONVERGED * u):
             break
     pdge = extract_pdges(machine, ext, imaging_corrected(machine, ext, measurements), truth)  # the table
+    alternation = CalibrationResult(pdge, fit, extraction_model=ext)
+    held = not fit.fit.identifiable[n_const:].any()
+    if held:  # every effect parameter stays at its start: the calibration of that model, joint step included
+        from tasks.identification.joint_fit import joint_refine
+
+        skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
+        pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit)
+        fit = _keep_unidentified(fit, alternation.pige.fit.identifiable)
     notes = []
     for i, s in enumerate(specs_e):
         if not fit.fit.identifiable[n_const + i]:
@@ -257,7 +288,12 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
         clean = synthetic_measurements(machine, truth, measurements)
         if truth.effects:
             truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
+        elif held:  # as calibrate() expresses the truth for a fit that ends with the joint step
+            truth_fit = _joint_truth(machine, clean, const_specs, pdge)
         else:  # the alternation, as this fit's (the joint step is not part of a fit with effects)
             clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
             _, truth_fit, _ = alternate(machine, ErrorModel(), clean, clean_poses, const_specs)
+    if held:
+        return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True,
+                                 alternation=alternation)
     return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)

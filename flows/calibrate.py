@@ -1,7 +1,8 @@
 """Calibrate a campaign (§3.3, §4.2, §5.2): measure it, extract the PDGEs, identify the PIGEs,
 compensate the validation poses, verify them on a second capture and write the report.
 
-Writes the ``pdge``, ``pige``, ``compensation``, ``verification`` and ``formulations`` tables
+Writes the ``pdge``, ``pige``, ``compensation``, ``verification``, ``formulations``, ``residuals``,
+``residual_trends`` and ``diagnosis`` tables
 and ``reports/<campaign_id>/<run>/``. Every stage is a cached task: re-running on an unchanged
 campaign re-uses all of them.
 """
@@ -54,7 +55,8 @@ from tasks.machine import CALIBRATION_STAGE
 from tasks.model_ladder import append_step, compensated_tip_errors, ladder_step
 from tasks.report import ReportData
 from tasks.report.residual_figures import residual_report
-from tasks.residuals import dot_residual_table, plates_of, pose_residual_table, trend_summary
+from tasks.residual_trends import shared_deviations, trend_tests
+from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
 from tasks.results_lake import partition_path, read_table, write_partitions
 from tasks.simulate import read_truth
 from tasks.verification import (
@@ -230,6 +232,8 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     cv = cross_validate_task.submit(machine, result.model, result.pige.specs, measurements)
     cv_rms = cv.result()
     cached["cross_validate"] = cv.state.name == "Cached"
+    trends = trend_tests(residuals, shared_deviations(machine, result.model, propagated, measurements))
+    pending["residual_trends"] = trends
     logger.info("diagnosis: scoring every catalogue effect the model lacks")
     diag_future = diagnose_task.submit(machine, measurements, result)
     diagnosis = diag_future.result()
@@ -240,10 +244,11 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                                                   tip=compensated_tip_errors(verification)),
                          provenance, root)
     tables["model_ladder"] = str(partition_path("model_ladder", campaign_id, root))
-    sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras)
+    sections, figures = residual_report(residuals, dot_residuals, ladder, cameras=cameras, trends=trends,
+                                        accepted=diagnosis.accepted)
     sentences = list(diagnosis.sentences)
     if diagnosis.best is None:  # no family explains it: say what the residual follows
-        sentences += [s for s in [residual_follows_sentence(trend_summary(residuals), VALIDATION_CAMERA)] if s]
+        sentences += [s for s in [residual_follows_sentence(trends, VALIDATION_CAMERA)] if s]
     sections = [("What the model lacks (diagnosis)", "\n\n".join(sentences)), *sections]
     logger.info("diagnosis:\n" + "\n".join(sentences))
 

@@ -412,6 +412,21 @@ _TABLES = (
         _c("du_px", "float64", "px", IMAGE, "detected − projected u (plate dot through the measured pose and the "
            "calibrated intrinsics)"),
         _c("dv_px", "float64", "px", IMAGE, "detected − projected v"))),
+    TableSchema("residual_trends", 1, "camera × variable × component of the residual trend figures: does the pose "
+                "residual follow the variable?", "tasks/residual_trends.py trend_tests (fivecal calibrate)",
+                (PARTITION, "camera", "variable", "component"), (
+        _s("camera", "camera whose images are binned"),
+        _s("variable", "the residuals table's variable the images are binned by (X_mm … C_deg, time_s, "
+           "temperature_c, u_mean_px, v_mean_px, approach_X … approach_C)"),
+        _s("component", "the residuals table's camera-frame component tested (cam_dx_um … cam_rz_arcsec)"),
+        _i("bins", "bins holding at least 3 images (equal-count bins; one per value for an approach direction)"),
+        _c("span", "float64", "um or arcsec", RESIDUAL_CAMERA, "max − min of the bin means (the component's unit)"),
+        _c("statistic", "float64", meaning="Welch's F of the bin means' differences from their common mean, with "
+           "the covariance of the bin means: the scatter within each bin plus what the images share through the "
+           "identified model's uncertainty (its propagated re-fits)"),
+        _c("p_value", "float64", meaning="F tail probability (bins − 1 and Welch's degrees of freedom)"),
+        _c("significant", "bool", meaning="p_value below the test's level (5 %): about one panel in twenty on a "
+           "campaign that lacks no effect"))),
     TableSchema("model_ladder", 1, "refit of the campaign with a set of effects (a step)",
                 "tasks/model_ladder.py append_step (fivecal calibrate)", (PARTITION, "step"), (
         _i("step", "0 for the first model fitted, then 1, 2, ...; a refit with the same effects replaces its step"),

@@ -365,8 +365,8 @@ def test_camera_effects_act_on_the_pose_as_a_pnp_with_the_calibrated_intrinsics_
 
 
 def test_with_nothing_accepted_the_verdict_names_what_the_residual_follows():
-    """The strongest significant trends of the camera's residual, one per variable, strongest χ² per bin
-    first; nothing when no trend leaves its band or the camera has none."""
+    """The significant trend tests of the camera's residual, one per variable, smallest p-value first;
+    nothing when no panel is significant or the camera has none."""
     import pandas as pd
 
     from tasks.diagnosis.verdict import residual_follows_sentence
@@ -375,9 +375,10 @@ def test_with_nothing_accepted_the_verdict_names_what_the_residual_follows():
         "camera": ["camera1", "camera1", "camera1", "camera1", "camera2"],
         "variable": ["approach_X", "approach_X", "time_s", "Z_mm", "A_deg"],
         "component": ["cam_dy_um", "cam_rx_arcsec", "cam_dy_um", "cam_dz_um", "cam_dx_um"],
-        "n_bins": [2, 2, 10, 10, 10], "span": [7.9, 3.0, 3.6, 1.0, 9.0],
-        "significant": [True, True, True, False, True], "chi2": [190.0, 30.0, 250.0, 500.0, 999.0]})
+        "bins": [2, 2, 10, 10, 10], "span": [7.9, 3.0, 3.6, 1.0, 9.0],
+        "statistic": [190.0, 30.0, 25.0, 1.2, 999.0], "p_value": [1e-9, 1e-4, 1e-3, 0.3, 1e-12],
+        "significant": [True, True, True, False, True]})
     sentence = residual_follows_sentence(trends, "camera1")
-    assert sentence.index("approach_X (cam_dy_um spans 7.9 um, χ²/bin 95)") < sentence.index("time_s (cam_dy_um")
+    assert sentence.index("approach_X (cam_dy_um spans 7.9 um") < sentence.index("time_s (cam_dy_um spans 3.6 um")
     assert "Z_mm" not in sentence and "A_deg" not in sentence and "cam_rx_arcsec" not in sentence
     assert residual_follows_sentence(trends[trends.camera == "camera2"], "camera1") is None

@@ -328,3 +328,55 @@ def test_report_pages_render_to_png_and_into_the_report(machine, errors, frame, 
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000, stem
     html = paths["html"].read_text()
     assert "Model ladder — watch the error fall" in html and html.count("data:image/png;base64,") == len(figures)
+
+
+# --------------------------------------------------------------------------------------------
+# Trend tests (residual_trends)
+# --------------------------------------------------------------------------------------------
+
+
+def _noise_table(rng, n: int = 400) -> pd.DataFrame:
+    """A residuals-like table of one camera: uniform variables, Gaussian components (µm, arcsec)."""
+    from tasks.residuals import CAMERA_COMPONENTS
+
+    t = pd.DataFrame({"camera": "camera1", "X_mm": rng.uniform(-5, 5, n), "time_s": np.arange(n) * 3.0,
+                      "approach_X": rng.choice([-1, 1], n)})
+    for c in CAMERA_COMPONENTS:
+        t[c] = rng.normal(0.0, 2.0, n)
+    return t
+
+
+def test_trend_tests_flag_the_nominal_share_of_pure_noise_and_ignore_a_constant_offset():
+    """Pure noise: about 5 % of the panels are flagged at the 5 % level (600 panels: 2.5–8 %). A constant
+    offset of a component is no trend: flagged no more often. A linear trend of 4 µm over X is."""
+    from tasks.residual_trends import trend_tests
+
+    rng = np.random.default_rng(4)
+    tables = [_noise_table(rng) for _ in range(34)]
+    flags = pd.concat([trend_tests(t, variables=("X_mm", "time_s", "approach_X")) for t in tables])
+    assert 0.025 < flags.significant.mean() < 0.08, flags.significant.mean()
+    assert len(flags) == 34 * 3 * 6 and set(flags.columns) == {"camera", "variable", "component", "bins", "span",
+                                                              "statistic", "p_value", "significant"}
+    offset = [t.assign(cam_rx_arcsec=t.cam_rx_arcsec - 12.0) for t in tables]
+    rx = pd.concat([trend_tests(t, variables=("X_mm",)) for t in offset]).query("component == 'cam_rx_arcsec'")
+    assert rx.significant.mean() < 0.15
+    trend = tables[0].assign(cam_dx_um=tables[0].cam_dx_um + 0.4 * tables[0].X_mm)
+    row = trend_tests(trend, variables=("X_mm",)).set_index("component").loc["cam_dx_um"]
+    assert row.significant and row.p_value < 1e-4 and row.span > 3.0
+
+
+def test_a_trend_the_models_own_uncertainty_explains_is_not_flagged():
+    """A wave over X that the identified model's uncertainty could make (a shared deviation of that shape
+    at its size) is within the test's allowance; without that allowance it is flagged."""
+    from tasks.residual_trends import trend_tests
+    from tasks.residuals import CAMERA_COMPONENTS
+
+    rng = np.random.default_rng(5)
+    t = _noise_table(rng, 600)
+    wave = 1.0 * np.sin(t.X_mm.to_numpy())
+    t["cam_dz_um"] += wave
+    shared = np.zeros((1, len(t), len(CAMERA_COMPONENTS)))
+    shared[0, :, CAMERA_COMPONENTS.index("cam_dz_um")] = wave  # the model could be off by this, at 1σ
+    without = trend_tests(t, variables=("X_mm",)).set_index("component").loc["cam_dz_um"]
+    with_shared = trend_tests(t, shared, variables=("X_mm",)).set_index("component").loc["cam_dz_um"]
+    assert without.significant and not with_shared.significant, (without.p_value, with_shared.p_value)

@@ -21,7 +21,12 @@ extraction and eq. 22 are two separate estimators:
    that the extraction cannot absorb (and reports the effect unidentifiable when it absorbs all);
 3. repeat from 1 with the fitted constants and θ in the extraction's model (the extraction reads
    everything but the swept axis from the model) until no parameter moves by more than 0.1 of its
-   standard uncertainty (at most ``rounds`` times).
+   standard uncertainty (at most ``rounds`` times);
+4. if no effect parameter is identifiable (all stay at their start), the fit is that model's
+   calibration: the joint step of :mod:`tasks.identification.joint_fit` closes it, as it closes
+   :func:`~tasks.identification.pige_identification.calibrate`, the effects reported unidentifiable
+   as the coupled fit found them. A fit that identifies an effect keeps the alternation's solution
+   (the diagnosis is linearised about the alternation, :func:`tasks.diagnosis.linearisation.alternation_of`).
 
 An effect with a phase (pitch_cyclic, encoder harmonics) is first fitted as two copies at phases
 φ₀ and φ₀ + 90° whose amplitudes are linear (:func:`tasks.diagnosis.effect_params.combine_quadrature`),
@@ -210,6 +215,29 @@ def _join_phases(split: list[Effect], pairs) -> list[Effect]:
     return out
 
 
+def _keep_unidentified(fit, identifiable: np.ndarray):
+    """``fit`` (a PigeFit) with the parameters whose ``identifiable`` (P,) is false reported
+    unidentifiable: the joint step's closing LM holds the profiles fixed and cannot see that they
+    absorb an effect; the coupled fit, whose profiles move with it, can."""
+    ok = fit.fit.identifiable & identifiable
+    cov = fit.fit.covariance.copy()
+    cov[~ok, :] = np.nan
+    cov[:, ~ok] = np.nan
+    return replace(fit, fit=replace(fit.fit, identifiable=ok, covariance=cov))
+
+
+def _joint_truth(machine: Machine, clean: Measurements, specs: list[ParamSpec], pdge) -> object:
+    """The truth's exact poses ``clean`` calibrated as calibrate() does for its truth gauge: the
+    alternation's start and the joint step, with the noisy fit's smoothers (``pdge``)."""
+    from tasks.identification.joint_fit import joint_refine
+    from tasks.identification.pige_identification import JOINT_START_ROUNDS, alternate
+
+    poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
+    clean_pdge, fit, _ = alternate(machine, ErrorModel(), clean, poses, specs, rounds=JOINT_START_ROUNDS,
+                                   smoothing=pdge.smoothing)
+    return joint_refine(machine, ErrorModel(), clean, poses, clean_pdge, fit, penalty_of=pdge)[1]
+
+
 def calibrate_with_effects(machine: Machine, measurements: Measurements, base: ErrorModel,
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
                            rounds: int = ROUNDS) -> CalibrationResult:
@@ -243,6 +271,14 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
         if np.all(np.abs(fit.fit.x - before) <= CONVERGED * u):
             break
     pdge = extract_pdges(machine, ext, imaging_corrected(machine, ext, measurements), truth)  # the table
+    alternation = CalibrationResult(pdge, fit, extraction_model=ext)
+    held = not fit.fit.identifiable[n_const:].any()
+    if held:  # every effect parameter stays at its start: the calibration of that model, joint step included
+        from tasks.identification.joint_fit import joint_refine
+
+        skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
+        pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit)
+        fit = _keep_unidentified(fit, alternation.pige.fit.identifiable)
     notes = []
     for i, s in enumerate(specs_e):
         if not fit.fit.identifiable[n_const + i]:
@@ -252,8 +288,17 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
                          f"poses that would identify it: {identifying_poses(e)}.")
     truth_fit = None
     if truth is not None:  # the truth in the fit's gauge: the same calibration of its exact poses
-        from tasks.identification.pige_identification import calibrate
+        from tasks.identification.pige_identification import alternate, calibrate
 
         clean = synthetic_measurements(machine, truth, measurements)
-        truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
+        if truth.effects:
+            truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
+        elif held:  # as calibrate() expresses the truth for a fit that ends with the joint step
+            truth_fit = _joint_truth(machine, clean, const_specs, pdge)
+        else:  # the alternation, as this fit's (the joint step is not part of a fit with effects)
+            clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
+            _, truth_fit, _ = alternate(machine, ErrorModel(), clean, clean_poses, const_specs)
+    if held:
+        return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True,
+                                 alternation=alternation)
     return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)

@@ -86,18 +86,18 @@ def explained_sentence(camera: str, direction: str, cand: Candidate, spec: str, 
 
 
 def residual_follows_sentence(trends, camera: str, limit: int = 5) -> str | None:
-    """When no candidate is accepted: the variables ``camera``'s residual follows beyond its band, from
-    :func:`tasks.residuals.trend_summary` (``trends``), strongest first (χ² per bin), at most ``limit``,
-    each with the component that follows it most and the span of its bin means (µm or arcsec). None
-    when nothing is significant. What the residual follows is where an effect of one's own would act
-    (docs/user-effects.md)."""
+    """When no candidate is accepted: the variables ``camera``'s residual follows, from the trend tests
+    of :func:`tasks.residual_trends.trend_tests` (``trends``, the ``residual_trends`` table): the
+    significant panels, smallest p-value first, one per variable, at most ``limit``, each with its
+    component and the span of its bin means (µm or arcsec). None when no panel is significant. What
+    the residual follows is where an effect of one's own would act (docs/user-effects.md)."""
     t = trends[(trends["camera"] == camera) & trends["significant"]]
     if t.empty:
         return None
-    t = t.assign(strength=t["chi2"] / t["n_bins"]).sort_values("strength", ascending=False, kind="stable")
+    t = t.sort_values(["p_value", "statistic"], ascending=[True, False], kind="stable")
     top = t.drop_duplicates("variable").head(limit)
     parts = [f"{r.variable} ({r.component} spans {r.span:.3g} {r.component.rsplit('_', 1)[-1]}, "
-             f"χ²/bin {r.strength:.3g})" for r in top.itertuples(index=False)]
-    return (f"What the {camera} residual follows most (binned, outside its 95 % band): {'; '.join(parts)}. "
+             f"{p_text(r.p_value)})" for r in top.itertuples(index=False)]
+    return (f"What the {camera} residual follows most (trend tests at 5 %): {'; '.join(parts)}. "
             f"An effect that depends on these and that no catalogue family describes can be written as a "
             f"family of one's own (docs/user-effects.md).")

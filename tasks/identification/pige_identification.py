@@ -136,7 +136,10 @@ class CalibrationResult:
     """pdge: PDGE extraction. pige: the fit. model: the identified error model (PDGE profiles,
     PIGEs, constants, mounts, effects). truth_pige: the same fit on noise-free truth (simulated only).
     extraction_model: the model the PDGEs were extracted with (the base, its effects at their fitted
-    values). notes: warnings of the fit in words (e.g. an effect these poses cannot identify)."""
+    values). notes: warnings of the fit in words (e.g. an effect these poses cannot identify). joint: the
+    profiles and constants come from the joint step (:mod:`tasks.identification.joint_fit`).
+    alternation: for a joint result, the alternation's converged solution it started from (None: the
+    diagnosis computes it, :func:`tasks.diagnosis.linearisation.alternation_of`)."""
 
     pdge: PdgeResult
     pige: PigeFit
@@ -144,6 +147,8 @@ class CalibrationResult:
     truth: ErrorModel | None = None
     extraction_model: ErrorModel | None = None
     notes: list[str] = field(default_factory=list)
+    joint: bool = False
+    alternation: CalibrationResult | None = None
 
     @property
     def model(self) -> ErrorModel:
@@ -220,6 +225,9 @@ def _distance_from_zero(value: float, uncertainty: float) -> str:
 
 ALTERNATION_ROUNDS = 6
 ALTERNATION_CONVERGED = 0.1  # stop when no parameter moves by more than this many standard uncertainties
+JOINT_START_ROUNDS = 2
+"""Rounds of the alternation before the joint step (:mod:`tasks.identification.joint_fit`): it only
+has to bring the constants near enough for the joint system's responses."""
 
 
 def alternate(machine: Machine, base: ErrorModel, measurements: Measurements, poses: Measurements,
@@ -255,7 +263,9 @@ def alternate(machine: Machine, base: ErrorModel, measurements: Measurements, po
 
 def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | None = None,
               specs: list[ParamSpec] | None = None, base: ErrorModel | None = None) -> CalibrationResult:
-    """PDGEs from the sweeps, then the constant parameters over the ``pige`` stage (camera 1).
+    """PDGEs from the sweeps, then the constant parameters over the ``pige`` stage (camera 1),
+    alternated; then profiles and constants in one least squares over the sweeps and the five-axis
+    poses (:mod:`tasks.identification.joint_fit`).
 
     base: a starting model whose effects (and anything else) are kept; its PDGE profiles are
     replaced by the extracted ones. When it holds effects, their amplitudes (and phases) are fitted
@@ -267,12 +277,17 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
         from tasks.diagnosis.effect_fit import calibrate_with_effects
 
         return calibrate_with_effects(machine, measurements, base, truth, specs)
+    from tasks.identification.joint_fit import joint_refine
+
     poses = measurements.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
-    pdge, fit, extraction = alternate(machine, base, measurements, poses, specs, truth)
+    pdge, fit, extraction = alternate(machine, base, measurements, poses, specs, truth, rounds=JOINT_START_ROUNDS)
+    pdge, fit, _ = joint_refine(machine, base, measurements, poses, pdge, fit)
     truth_fit = None
     if truth is not None:
         clean = synthetic_measurements(machine, truth, measurements)
-        _, truth_fit, _ = alternate(machine, base, clean, clean.stage(*IDENTIFICATION_STAGES,
-                                                                      camera=IDENTIFICATION_CAMERA), specs)
-    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=extraction)
-
+        clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
+        # the same estimator on exact poses: the noisy fit's smoothers (exact repeats have no variance)
+        clean_pdge, truth_fit, _ = alternate(machine, base, clean, clean_poses, specs, rounds=JOINT_START_ROUNDS,
+                                             smoothing=pdge.smoothing)
+        _, truth_fit, _ = joint_refine(machine, base, clean, clean_poses, clean_pdge, truth_fit, penalty_of=pdge)
+    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=extraction, joint=True)

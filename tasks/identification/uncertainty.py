@@ -26,7 +26,9 @@ were the only noisy input and the PDGE profiles were exact. Two inputs it holds 
   location terms (δAY spread 14 times, βCY 3.4 times that with the roughness held, in full
   re-calibrations from re-drawn pixel noise; docs/calibrate.md).
 
-A re-fit is the alternation of :func:`~tasks.identification.pige_identification.alternate`
+A re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`)
+is that step's Gauss–Newton from the identified solution (:func:`_joint_refit`). Otherwise (a fit
+with added effects) it is the alternation of :func:`~tasks.identification.pige_identification.alternate`
 linearised about the identified solution: it starts there and replaces each constant fit by a
 Gauss–Newton step with the fit's own Jacobian (:func:`_linearised_refit`); the camera re-fits hold
 the PDGE smoothers' roughness (:mod:`tasks.identification.smoothing`), the noise draws choose it
@@ -103,6 +105,8 @@ def _linearised_refit(machine: Machine, result: CalibrationResult, measurements:
     poses corrected for the model's imaging bias, as the fit does, with the PDGE smoothers'
     roughness held at ``result``'s, or chosen again by GCV in every round (reselect_smoothing), as
     the calibration itself chooses it."""
+    if result.joint:
+        return _joint_refit(machine, result, measurements)
     specs, fit = result.pige.specs, result.pige.fit
     steps = np.array([s.jacobian_step for s in specs])
     s, Vt = right_singular(fit.jacobian * steps)  # natural units, as the LM took its subspace
@@ -130,6 +134,29 @@ def _linearised_refit(machine: Machine, result: CalibrationResult, measurements:
             x = x - gain @ r.ravel()
             ext = apply_parameters(skeleton, specs, x)
         return x, apply_parameters(with_pdge, specs, x)
+
+    return refit
+
+
+def _joint_refit(machine: Machine, result: CalibrationResult, measurements: Measurements) -> Callable[..., tuple]:
+    """The re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`):
+    that step's Gauss–Newton from ``result``'s solution on the moved poses, its penalties held or
+    (reselect_smoothing) set again from the moved sweeps (GCV's roughness and the positions' variance),
+    as the calibration sets them."""
+    from tasks.identification.joint_fit import JointStep, position_variances
+
+    fit = result.pige.fit
+    step = JointStep.build(machine, result.pige.specs, result.model, fit.x, fit.jacobian, fit.null_space,
+                           result.pdge.smoothing, position_variances(result.pdge.table), measurements)
+    extraction = result.extraction_model or ErrorModel()
+
+    def refit(m: Measurements, reselect_smoothing: bool = False) -> tuple:
+        solver = step
+        if reselect_smoothing:
+            again = extract_pdges(machine, extraction, m)
+            solver = step.with_penalty(again.smoothing, position_variances(again.table))
+        x, profiles = solver.solve(m)
+        return x, solver.model_at(x, profiles)
 
     return refit
 

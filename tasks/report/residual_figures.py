@@ -34,12 +34,12 @@ from tasks.camera_model import CameraModel
 from tasks.identification.measurements import COMMAND_COLUMNS
 from tasks.report.figures import _no_data, new_figure
 from tasks.report.tables import fmt, fmt_g, md_table
+from tasks.residual_trends import ALPHA, trend_tests
 from tasks.residuals import (
     CAMERA_COMPONENTS,
     CATEGORICAL_VARIABLES,
     TREND_VARIABLES,
     binned_mean,
-    trend_summary,
     worst_poses,
 )
 
@@ -106,11 +106,16 @@ def _band_panel(ax, bins: pd.DataFrame, scale: float, categorical: bool) -> None
 
 
 def trend_figure(residuals: pd.DataFrame, camera: str, variables: Sequence[str] = TREND_VARIABLES,
-                 components: Sequence[str] = CAMERA_COMPONENTS, n_bins: int = 10) -> Figure:
+                 components: Sequence[str] = CAMERA_COMPONENTS, n_bins: int = 10,
+                 trends: pd.DataFrame | None = None) -> Figure:
     """Residual of ``camera`` against each variable (rows) for each component (columns): binned means
     (equal-count bins, or one per value for the approach directions) with the simultaneous 95 % band.
-    Variables that do not vary for the camera are left out. Red points / titles: bins whose band
-    excludes zero."""
+    Variables that do not vary for the camera are left out. Red points: bins whose band excludes zero.
+    Red frame: the panel's trend test (``trends``, the ``residual_trends`` table) is significant; without
+    it, some bin's band excludes zero."""
+    flagged = (set() if trends is None else
+               {(r.variable, r.component) for r in trends.itertuples(index=False)
+                if r.camera == camera and r.significant})
     g = residuals[residuals["camera"].astype(str) == camera]
     rows = _varying(g, variables)
     fig = _grid_figure(max(len(rows), 1), len(components))
@@ -128,11 +133,12 @@ def trend_figure(residuals: pd.DataFrame, camera: str, variables: Sequence[str] 
                 ax.set_title(COMPONENT_LABEL.get(comp, comp), fontsize=8)
             if c == 0:
                 ax.set_ylabel(label, fontsize=7)
-            if len(bins) and bins["excludes_zero"].any():
+            hit = (var, comp) in flagged if trends is not None else bool(len(bins) and bins["excludes_zero"].any())
+            if hit:
                 for side in ax.spines.values():
                     side.set_edgecolor("C3")
     fig.suptitle(f"{camera}: pose residual (camera frame) against each variable — binned mean, simultaneous 95 % "
-                 "band; red: band excludes zero", fontsize=9)
+                 "band; red frame: the residual follows the variable (trend test at 5 %)", fontsize=9)
     return fig
 
 
@@ -265,15 +271,38 @@ def worst_poses_markdown(residuals: pd.DataFrame, n: int = 10) -> str:
     return md_table(headers, rows, "lll" + "r" * (len(headers) - 3))
 
 
-def trends_markdown(summary: pd.DataFrame, limit: int = 15) -> str:
-    """The significant trends (simultaneous 95 % band leaves zero), most significant first."""
-    s = summary[summary["significant"]]
+def trends_markdown(trends: pd.DataFrame, limit: int = 15) -> str:
+    """The significant trends of the ``residual_trends`` table, most significant first."""
+    s = trends[trends["significant"]]
     if s.empty:
-        return "No residual component follows any variable beyond its 95 % band: no structure above the noise."
-    rows = [[r.camera, r.variable, r.component, r.n_bins, fmt_g(r.max_abs_mean, 3), fmt_g(r.span, 3),
+        return f"No residual component follows any variable at the {ALPHA:.0%} level."
+    rows = [[r.camera, r.variable, r.component, r.bins, fmt_g(r.span, 3), fmt_g(r.statistic, 3),
              fmt_g(r.p_value, 2)] for r in s.head(limit).itertuples(index=False)]
     more = f"\n\n({len(s) - limit} more significant panels not listed.)" if len(s) > limit else ""
-    return md_table(["camera", "variable", "component", "bins", "max |bin mean|", "span", "p (χ²)"], rows) + more
+    return md_table(["camera", "variable", "component", "bins", "span", "F", "p"], rows) + more
+
+
+def trends_story(trends: pd.DataFrame, accepted: Sequence[str] = ()) -> str:
+    """What the trend tests say, in words, beside the diagnosis' verdict (``accepted``: the effects it
+    accepted, in order): how many panels are flagged against what chance flags, and whether an
+    accepted effect or nothing the diagnosis found stands behind them."""
+    n, k = len(trends), int(trends["significant"].sum()) if len(trends) else 0
+    if not n:
+        return "No trend could be tested."
+    chance = ALPHA * n
+    head = (f"{k} of {n} panels ({k / n:.0%}) show a trend at the {ALPHA:.0%} level; chance alone flags about "
+            f"{chance:.0f} ({ALPHA:.0%}).")
+    top = trends[trends["significant"]].head(5)
+    named = "; ".join(f"{r.camera} {r.component} against {r.variable} (span {r.span:.3g}, p {r.p_value:.1g})"
+                      for r in top.itertuples(index=False))
+    if accepted:
+        return (head + " The diagnosis attributes the structure to " + ", ".join(accepted) + "; the model refitted "
+                "with it is the next step of the ladder. The strongest flagged panels: " + named + ".")
+    if k <= 2 * chance:
+        return (head + " That is what a model that lacks nothing gives, and the diagnosis names no missing effect: "
+                "the flagged panels are read as chance" + (f" (the strongest: {named})." if named else "."))
+    return (head + " More than chance, and the diagnosis names no effect of its catalogue: structure that is "
+            "flagged and unexplained. The strongest: " + named + ".")
 
 
 def ladder_markdown(ladder: pd.DataFrame) -> str:
@@ -294,32 +323,37 @@ def ladder_markdown(ladder: pd.DataFrame) -> str:
 
 def residual_report(residuals: pd.DataFrame, dot_residuals: pd.DataFrame | None = None,
                     ladder: pd.DataFrame | None = None, *, cameras: Mapping[str, CameraModel] | None = None,
-                    n_worst: int = 10, n_bins: int = 10) -> tuple[list[tuple[str, str]], list[tuple[str, Figure]]]:
+                    n_worst: int = 10, n_bins: int = 10, trends: pd.DataFrame | None = None,
+                    accepted: Sequence[str] = ()) -> tuple[list[tuple[str, str]], list[tuple[str, Figure]]]:
     """Sections (title, Markdown) and figures (stem, Figure) for ``ReportData.extra_sections`` /
     ``extra_figures``.
 
     residuals: the ``residuals`` table. dot_residuals: the ``dot_residuals`` table (vector fields; None
     skips them). ladder: the ``model_ladder`` table (None skips it). cameras: {camera: intrinsics} for the
-    image size of the vector fields. The figures appear under the report's "Additional figures" with their
-    stems as captions; the sections name them.
+    image size of the vector fields. trends: the ``residual_trends`` table (None: tested here without the
+    model's shared uncertainty, :func:`tasks.residual_trends.trend_tests`). accepted: the effects the
+    diagnosis accepted, for the section's account of the flagged panels (:func:`trends_story`). The
+    figures appear under the report's "Additional figures" with their stems as captions; the sections
+    name them.
     """
     sections: list[tuple[str, str]] = []
     figures: list[tuple[str, Figure]] = []
     outside = _cameras_outside_fit(residuals)
-    summary = trend_summary(residuals, n_bins=n_bins)
+    summary = trend_tests(residuals, n_bins=n_bins) if trends is None else trends
     names = []
     for camera in sorted(residuals["camera"].astype(str).unique()):
         figures.append((f"residual_trends_{_stem(camera)}",
-                        trend_figure(residuals, camera, TREND_VARIABLES, n_bins=n_bins)))
+                        trend_figure(residuals, camera, TREND_VARIABLES, n_bins=n_bins, trends=summary)))
         figures.append((f"residual_approach_{_stem(camera)}",
-                        trend_figure(residuals, camera, CATEGORICAL_VARIABLES)))
+                        trend_figure(residuals, camera, CATEGORICAL_VARIABLES, trends=summary)))
         names += [f"`residual_trends_{_stem(camera)}`", f"`residual_approach_{_stem(camera)}`"]
     body = [
         "The pose residual of each image, e = log(T_model⁻¹ T_measured) (eq. 20), against everything it could "
         "depend on. Components are shown in the camera frame (µm, arcsec), where an error of the machine's linear "
         "axes keeps one direction whatever C and A are. Each panel bins the images of one camera by one variable "
-        "and draws the mean residual with a simultaneous 95 % band: where the band leaves zero (red), the "
-        "residual follows that variable — structure the model lacks — rather than noise. Figures: "
+        "and draws the mean residual with a simultaneous 95 % band. A panel is framed red when its bin means differ "
+        "from each other more than the images' scatter and the identified model's own uncertainty allow (χ² at the "
+        f"{ALPHA:.0%} level, `residual_trends` table): the residual follows that variable. Figures: "
         + ", ".join(names) + ".",
         f"{len(residuals)} poses; {int(residuals['used_in_fit'].sum())} in the constant-parameter fit, the others "
         "held out of it (validation poses, sweeps of other cameras).",
@@ -329,7 +363,7 @@ def residual_report(residuals: pd.DataFrame, dot_residuals: pd.DataFrame | None 
                     "reaches the constant poses at the ends of their chain (camera mount, plate mount, and the gauge "
                     "the fit chose for the axes they see). Their residuals are taken against the model completed by "
                     "those 12 numbers, fitted to their own images: what is left is how they vary otherwise.")
-    body.append("### Significant trends\n\n" + trends_markdown(summary))
+    body.append("### Significant trends\n\n" + trends_story(summary, accepted) + "\n\n" + trends_markdown(summary))
     body.append(f"### Worst poses\n\nThe {n_worst} poses with the largest whitened residual norm ‖W e‖ (≈ √6 ≈ 2.4 "
                 "for a pose at its measurement noise):\n\n" + worst_poses_markdown(residuals, n_worst))
     sections.append(("Residuals — where the model fails", "\n\n".join(body)))

@@ -18,13 +18,16 @@ Read-only and confined to the lake: one SELECT (or EXPLAIN) per query; DuckDB's 
 limited to the lake folder (``enable_external_access = false`` with the lake as the only
 ``allowed_directories``), extensions are neither installed nor loaded, the memory is limited
 (:data:`MEMORY_LIMIT`, no spilling to disk) and the configuration is locked before the user's SQL
-runs, so no SET can undo it. Results are streamed in batches (:func:`query_batches`): printing
-the first rows costs those rows, not the whole result.
+runs, so no SET can undo it. DuckDB checks a path's text against the lake folder, not where a
+symbolic link leads, so a lake that holds a link is refused (:func:`symbolic_links`). Results
+are streamed in batches (:func:`query_batches`): printing the first rows costs those rows, not
+the whole result.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -66,6 +69,14 @@ def table_folders(root: str | Path | None = None) -> dict[str, Path]:
             and any(d.glob(f"{PARTITION_COLUMN}=*/*.parquet"))}
 
 
+def symbolic_links(base: Path) -> list[Path]:
+    """Every symbolic link under the lake folder ``base`` (links are listed, never followed)."""
+    links = []
+    for folder, dirs, files in os.walk(base):
+        links += [Path(folder) / n for n in (*dirs, *files) if (Path(folder) / n).is_symlink()]
+    return sorted(links)
+
+
 def _literal(text: str) -> str:
     return "'" + text.replace("'", "''") + "'"
 
@@ -76,6 +87,10 @@ def connect(root: str | Path | None = None, memory_limit: str = MEMORY_LIMIT) ->
     extension installed or loaded, ``memory_limit`` (e.g. "1GB") without spilling to disk, and the
     configuration locked. Close it when done."""
     base = results_root(root).resolve()
+    links = symbolic_links(base)
+    if links:
+        raise LakeQueryError(f"the lake at {base} holds {len(links)} symbolic link(s), e.g. {links[0]}: fivecal query "
+                             f"reads only regular files inside the lake; replace the link by a copy or remove it")
     con = duckdb.connect(config={"autoinstall_known_extensions": False, "autoload_known_extensions": False,
                                  "allow_community_extensions": False, "memory_limit": memory_limit,
                                  "temp_directory": ""})

@@ -270,3 +270,18 @@ def test_csv_and_json_stream_every_row(two_campaigns):
     empty = runner.invoke(app, ["query", "--results", str(two_campaigns), "--format", "json",
                                 "select 1 as i where false"])
     assert json.loads(empty.output) == []
+
+
+@pytest.mark.parametrize("link_at", ["pige/campaign_id=stolen", "pige/campaign_id=w02/secret.txt", "secrets"])
+def test_a_lake_holding_a_symbolic_link_is_refused_naming_the_link(two_campaigns, tmp_path, link_at):
+    """DuckDB confines a query by the path's text: a link inside the lake would lead out of it."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "secret.txt").write_text("secret")
+    (two_campaigns / link_at).symlink_to(outside / "secret.txt" if link_at.endswith(".txt") else outside)
+    result = runner.invoke(app, ["query", "--results", str(two_campaigns),
+                                 f"select * from read_text('{two_campaigns.resolve()}/{link_at}/secret.txt')"])
+    assert result.exit_code == 2 and "symbolic link" in result.output and link_at.split("/")[-1] in result.output
+    assert "secret" not in result.output.replace("secret.txt", "").replace("secrets", "")
+    (two_campaigns / link_at).unlink()
+    assert run_query("select count(*) as n from pige", two_campaigns).n.tolist() == [4]

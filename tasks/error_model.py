@@ -11,23 +11,24 @@ PIGE names follow the paper's symbols (ASCII spelling) and each is defined by it
 the joint frame. The paper leaves the axis of each α/β open; we take α/β to be the rotation that
 changes the angle between the two named axes:
 
-==========  =====  ============================  =======================================
+==========  =====  ============================  ==============================================
 name        joint  unit screw (local frame)      meaning
-==========  =====  ============================  =======================================
+==========  =====  ============================  ==============================================
 delta_AZ    A      translation z                 radial error of A along z
 delta_AY    A      translation y                 radial error of A along y
-alpha_AZ    A      rotation about y              A axis tilted toward z (A–Z squareness)
-beta_AY     A      rotation about z              A axis tilted toward y (A–Y squareness)
+alpha_AZ    A      rotation about y              A's +x end tipped toward −z (A–Z squareness)
+beta_AY     A      rotation about z              A's +x end turned toward +y (A–Y squareness)
 delta_CX    C      translation x                 radial error of C along x
 delta_CY    C      translation y                 radial error of C along y
-beta_CY     C      rotation about x              C axis tilted toward y (C–Y squareness)
-alpha_CX    C      rotation about y              C axis tilted toward x (C–X squareness)
-gamma_YX    Y      rotation about z              Y–X squareness (X is the reference)
-alpha_YZ    Z      rotation about x              Z–Y squareness
-beta_XZ     Z      rotation about y              Z–X squareness
-==========  =====  ============================  =======================================
+beta_CY     C      rotation about x              C's +z end tipped toward −y (C–Y squareness)
+alpha_CX    C      rotation about y              C's +z end tipped toward +x (C–X squareness)
+gamma_YX    Y      rotation about z              Y's +y end turned toward −x (Y–X squareness)
+alpha_YZ    Z      rotation about x              Z's +z end tipped toward −y (Z–Y squareness)
+beta_XZ     Z      rotation about y              Z's +z end tipped toward +x (Z–X squareness)
+==========  =====  ============================  ==============================================
 
-Within a joint the factors are multiplied in the order of eqs. 9–11 (the table order above).
+Within a joint the factors are multiplied in the order of eqs. 9–11 (the table order above). Signs
+follow the right-hand rule about the screw's axis; tests/test_sign_conventions.py pins them.
 Units: files and reports use µm and arcsec; inside, mm and rad.
 
 PDGEs: each axis has six error motions (δx, δy, δz, εx, εy, εz) as smooth functions of its own

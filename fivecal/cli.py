@@ -155,9 +155,14 @@ def _print_table3(table: Path, campaign: Path) -> None:
     typer.echo("\nCamera self-calibration (Table 3): reprojection RMS per trial (px)")
     for camera, g in cal.groupby("camera"):
         trials = g[g["trial"] != "joint"]
+        joint = g[g["trial"] == "joint"].iloc[0]
+        if joint["status"] != "ok":  # no intrinsics: say why instead of printing NaN
+            reasons = "; ".join(f"trial {t.trial}: {t.status}: {t.message}" for t in trials.itertuples()
+                                if t.status != "ok")
+            typer.echo(f"  {camera}: NOT CALIBRATED ({joint['message']}): its images get no pose. {reasons}")
+            continue
         rms = " ".join(f"{v:.4f}" for v in trials["rms_px"])
         typer.echo(f"  {camera}: {rms}  mean {trials['rms_px'].mean():.4f}")
-        joint = g[g["trial"] == "joint"].iloc[0]
         line = (f"  {camera} joint: fx {joint['fx_px']:.2f} px, cx {joint['cx_px']:.2f}, cy {joint['cy_px']:.2f}, "
                 f"k1..k3 {joint['k1']:.4f} {joint['k2']:.4f} {joint['p1']:.5f} {joint['p2']:.5f} {joint['k3']:.4f}")
         if camera in truth:  # simulated campaign: shown, never used by the fit

@@ -16,7 +16,7 @@ from flows.runners import image_task_runner, subflow_task_runner
 from tasks.ingest import load_campaign_metadata
 from tasks.machine import CALIBRATION_STAGE
 from tasks.results_lake import write_partitions
-from tasks.vision import campaign_plates, content_key, detection_chunks, with_detection_inputs
+from tasks.vision import campaign_plates, check_detections, content_key, detection_chunks, with_detection_inputs
 from tasks.vision_steps import calibrate, detect_chunk, poses, read_images
 
 CHUNK_SIZE = 32
@@ -45,6 +45,7 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     cached = {"detect": sum(f.state.name == "Cached" for f in futures)}
     dots = pd.concat([r[0] for r in results], ignore_index=True)
     detections = pd.concat([r[1] for r in results], ignore_index=True)
+    check_detections(folder, detections, plates)  # plates that are not the ones imaged: refused here
 
     # only the calibration views' dots: all that the fit reads (and hashes for its cache key)
     calibration_ids = images.loc[images["stage"] == CALIBRATION_STAGE, "image_id"]

@@ -1,6 +1,7 @@
 """The measure flow end to end (ingest, detection, self-calibration, poses) through Prefect's harness."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -76,3 +77,33 @@ def test_calibrate_on_a_campaign_without_a_validation_pose_ends_in_one_line_and_
     assert "no validation image of camera1 gave a pose" in result.output and "Traceback" not in result.output
     assert len(read_table("poses", root, "noval")) == len(manifest) - 1  # measure's step went through
     assert not any((root / t).exists() for t in ("pdge", "pige", "compensation", "verification", "diagnosis"))
+
+
+def test_plates_that_are_not_the_ones_photographed_refuse_the_campaign_naming_them(
+        prefect_harness, campaign_copy, tmp_path, capsys):
+    """campaign.json says plate a and target a have 6 rows; the images show 7: no grid is found on
+    them, and the campaign is refused (exit 2) with each plate's count, the earlier tables kept."""
+    from typer.testing import CliRunner
+
+    from fivecal.cli import _print_table3, app
+    from flows.measure import measure_campaign
+
+    campaign = campaign_copy("wrongrows")
+    root = tmp_path / "results"
+    good = measure_campaign(str(campaign), str(root))
+    # too few calibration views in this tiny campaign: said in words, not as NaN intrinsics
+    _print_table3(Path(good["tables"]["camera_calibration"]), campaign)
+    printed = capsys.readouterr().out
+    assert "camera1: NOT CALIBRATED (no ok trial)" in printed and "nan" not in printed
+    before = read_table("dots", root, "wrongrows")
+
+    meta = json.loads((campaign / "campaign.json").read_text())
+    for plate in ("plate_a", "target_a"):
+        meta["plates"][plate]["rows"] = 6
+    (campaign / "campaign.json").write_text(json.dumps(meta))
+    bad = CliRunner().invoke(app, ["measure", str(campaign), "--results", str(root)])
+    assert bad.exit_code == 2, bad.output
+    assert "error: " in bad.output and "no dot grid found in 14 of 18 images" in bad.output
+    assert "plate_a (6×7 dots at 11 mm): 0 of 12" in bad.output
+    assert "target_b (7×7 dots at 2.5 mm): 2 of 2" in bad.output
+    pd.testing.assert_frame_equal(read_table("dots", root, "wrongrows"), before)

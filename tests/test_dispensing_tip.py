@@ -31,7 +31,7 @@ def test_nominal_tip_sits_above_each_ring_and_rings_do_not_touch(setup):
     machine, _, _, wp, layout = setup
     tip = forward(machine, layout.commands).tool_in_workpiece()[:, :3, 3]
     assert np.abs(tip[:, :2] - layout.centres).max() < 1e-9
-    np.testing.assert_allclose(tip[:, 2], wp.surface_z_mm + wp.standoff_mm, atol=1e-9)
+    np.testing.assert_allclose(tip[:, 2], layout.surface_z_mm + wp.standoff_mm, atol=1e-9)
     gaps = np.linalg.norm(layout.centres[:, None] - layout.centres[None], axis=2) + 1e9 * np.eye(len(tip))
     assert gaps.min() >= wp.min_spacing_mm
     assert np.ptp(layout.commands[:, 3]) > 50 and np.ptp(layout.commands[:, 4]) > 300  # A and C spread

@@ -1,10 +1,10 @@
 """The dispensing test (§4.3, §5.3), after ``calibrate``: see the tip, and close the calibration on it.
 
-A workpiece of ring targets on the C table; the machine dispenses a dot at every ring with the
-nominal commands and with the compensated ones (one capture, two phases), camera 1 images every ring,
-the §4.3 inspection measures each dot's offset from its ring, and the offsets of both phases fix the
-tip's constant offset in the tool frame (tasks.dispensing.tip). The offset is folded
-into the identified model as its ``tool_offset`` effect and everything is compensated again: the
+Workpieces of ring targets on the C table; the machine dispenses a dot at every ring of one with the
+nominal commands and of a second one with the compensated ones (one capture, two phases), camera 1
+images every ring, the §4.3 inspection measures each dot's offset from its ring, and the offsets of
+both phases fix the tip's constant offset in the tool frame (tasks.dispensing.tip). The offset is
+folded into the identified model as its ``tool_offset`` effect and everything is compensated again: the
 ``check`` phase dispenses a fresh workpiece with it, and the validation poses are compensated with
 it (the ``verification`` table's phase ``after_tip``).
 
@@ -125,14 +125,18 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
 
     five_axis = measurements.stage("pige").commands
     seed = int(truth_doc["seed"]) if simulated else int(content_key(campaign_id)[:8], 16)
-    layout = ring_layout(machine, workpiece, np.column_stack([five_axis.min(axis=0), five_axis.max(axis=0)]), seed)
-    centres, surface, nominal = layout.centres, layout.surface_z_mm, layout.commands
-    imaging = imaging_commands(machine, centres, surface, CAMERA)
-    compensated = compensate_task.submit(machine, model, nominal, orientation).result().commands
+    ranges = np.column_stack([five_axis.min(axis=0), five_axis.max(axis=0)])
+    # the nominal and the compensated phase on two workpieces drawn apart: twice the poses sampled
+    layouts = {"nominal": ring_layout(machine, workpiece, ranges, seed),
+               "compensated": ring_layout(machine, workpiece, ranges, seed + 1)}
+    imaging = {k: imaging_commands(machine, v.centres, v.surface_z_mm, CAMERA) for k, v in layouts.items()}
+    dispensed = {"nominal": layouts["nominal"].commands,
+                 "compensated": compensate_task.submit(machine, model, layouts["compensated"].commands,
+                                                       orientation).result().commands}
     full_camera = full_resolution(cameras[CAMERA], round(load_machine("prototype").cameras[CAMERA].width_px
                                                          / cameras[CAMERA].width_px))
-    first_rows = pd.concat([plan_rows("nominal", centres, surface, nominal, imaging),
-                            plan_rows("compensated", centres, surface, compensated, imaging)], ignore_index=True)
+    first_rows = pd.concat([plan_rows(k, layouts[k].centres, layouts[k].surface_z_mm, dispensed[k], imaging[k])
+                            for k in ("nominal", "compensated")], ignore_index=True)
     key = content_key(DISPENSE_CODE_VERSION, first_rows.round(9), workpiece.to_dict())[:12]
     first = _capture(folder / "captures" / f"dispense-{key}", folder, first_rows, workpiece, seed, simulated,
                      config, logger)
@@ -151,8 +155,11 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
                 + f" µm; tool-axis error ∝ sin A {fit.tilt_um:+.2f} ± {fit.tilt_uncertainty_um:.2f} µm; dot residual "
                 f"rms {fit.residual_rms_um:.2f} µm")
 
-    check_cmd = compensate_task.submit(machine, fit.model, nominal, orientation).result().commands
-    check_rows = plan_rows("check", centres, surface, check_cmd, imaging)
+    # a fresh copy of the compensated phase's workpiece
+    check_layout = layouts["compensated"]
+    check_cmd = compensate_task.submit(machine, fit.model, check_layout.commands, orientation).result().commands
+    check_rows = plan_rows("check", check_layout.centres, check_layout.surface_z_mm, check_cmd,
+                           imaging["compensated"])
     check_key = content_key(DISPENSE_CODE_VERSION, check_rows.round(9), workpiece.to_dict())[:12]
     check = _capture(folder / "captures" / f"dispense-check-{check_key}", folder, check_rows, workpiece, seed + 1,
                      simulated, config, logger)

@@ -39,7 +39,7 @@ class Workpiece:
     are multiples of it), the standoff of the tip's opening above the surface when it dispenses, the
     nominal dot diameter."""
 
-    rings: int = 315
+    rings: int = 240
     ring_inner_mm: float = 2.4
     ring_outer_mm: float = 3.4
     min_spacing_mm: float = 4.4
@@ -78,7 +78,7 @@ def _nominal_tips(machine: Machine, commands: np.ndarray) -> np.ndarray:
 
 
 def ring_layout(machine: Machine, workpiece: Workpiece, command_ranges: np.ndarray, seed: int,
-                max_draws: int = 200) -> Layout:
+                max_draws: int = 1000) -> Layout:
     """The rings and their dispensing commands: X, Y, Z, A, C over ``command_ranges`` (5, 2) (mm, deg)
     by a Latin hypercube, each ring at the foot of the nominal tip at its pose on a pad ``step_mm``
     -rounded ``standoff_mm`` below the tip; a ring nearer than ``min_spacing_mm`` to an earlier one

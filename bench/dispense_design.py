@@ -1,12 +1,13 @@
 """What limits the dispensing test's tip constant, at pose level (no images): for calibrated simulated
 campaigns, the true constant tool-frame tip error over the validation poses after compensation
 against what the tip fit finds from exact dot offsets (the simulator's landing points) and from
-offsets with Gaussian measurement noise, for two workpiece designs:
+offsets with Gaussian measurement noise, for three workpiece designs:
 
-* ``flat``: one flat surface 19.8 mm above plate a (Z command set by the surface and A), 63 rings,
+* ``flat 63``: one flat surface 19.8 mm above plate a (Z command set by the surface and A), 63 rings,
   the compensated phase only (the design before the pads);
-* ``pads``: the flow's design (tasks.dispensing.workpiece): rings over X, Y, Z, A, C on pads, two
-  plates of 240, both phases.
+* ``flat 480``: the rings of ``pads`` (same X, Y, A, C), all on that flat surface;
+* ``pads 480``: the flow's design (tasks.dispensing.workpiece): rings over X, Y, Z, A, C on pads,
+  two plates of 240, the nominal phase on one and the compensated on the other.
 
 Beside them ``floor``: the best constant from exact horizontal offsets taken at the validation poses
 themselves: what dots on a horizontal surface cannot see (the tip's vertical error that a constant
@@ -38,12 +39,10 @@ from tasks.vision import nominal_machine
 FLAT_SURFACE_MM = 19.8
 
 
-def flat_design(machine, ranges, seed):
-    """63 rings on one surface: the pads design's X, Y, A, C, the tip held above the flat surface."""
-    wp = Workpiece(rings=63)
-    layout = ring_layout(machine, wp, ranges, seed)
-    return layout.centres, dispensing_commands(machine, wp, layout.centres, np.full(63, FLAT_SURFACE_MM),
-                                               layout.commands)
+def on_flat_surface(machine, layout):
+    """The layout's commands with the tip held above one flat surface instead of its pads."""
+    n = len(layout.centres)
+    return dispensing_commands(machine, Workpiece(), layout.centres, np.full(n, FLAT_SURFACE_MM), layout.commands)
 
 
 def fit_error(machine, model, truth, commands, rings, target, noise_um, rng, draws):
@@ -73,8 +72,10 @@ def main() -> None:
     p.add_argument("--draws", type=int, default=100)
     p.add_argument("campaigns", nargs="+", type=Path)
     a = p.parse_args()
-    print(f"{'campaign':>9} {'const µm':>9} {'floor':>6} | {'flat exact':>10} {'noisy med':>9} {'p95':>5} | "
-          f"{'pads exact':>10} {'noisy med':>9} {'p95':>5} {'max':>5} | identify s")
+    print("|const − fitted constant| (µm): exact offsets, then median, 95th percentile and max over the noisy draws")
+    head = " | ".join(f"{name:<23}" for name in ("flat 63", "flat 480", "pads 480"))
+    print(f"{'campaign':>9} {'const µm':>9} {'floor':>6} | {head} | identify s")
+    print(f"{'':>26} | " + " | ".join(["exact   med   p95   max"] * 3))
     for folder in a.campaigns:
         metadata = load_campaign_metadata(folder)
         cid, machine = metadata["campaign_id"], nominal_machine(metadata)
@@ -88,17 +89,21 @@ def main() -> None:
         target = constant_tool_frame_error(machine, truth, desired, compensated)
         ranges, seed = np.column_stack([five.min(axis=0), five.max(axis=0)]), int(doc["seed"])
         rng = np.random.default_rng(seed)
-        rings, flat = flat_design(machine, ranges, seed)
-        flat_exact, flat_noisy = fit_error(machine, model, truth, compensate(machine, model, flat).commands, rings,
-                                           target, a.noise_um, rng, a.draws)
+        old = ring_layout(machine, Workpiece(rings=63), ranges, seed)
+        old_exact, old_noisy = fit_error(machine, model, truth,
+                                         compensate(machine, model, on_flat_surface(machine, old)).commands,
+                                         old.centres, target, a.noise_um, rng, a.draws)
         first, second = (ring_layout(machine, Workpiece(), ranges, seed + k) for k in (0, 1))
-        commands = np.vstack([first.commands, compensate(machine, model, second.commands).commands])
-        pads_exact, pads_noisy = fit_error(machine, model, truth, commands, np.vstack([first.centres, second.centres]),
-                                           target, a.noise_um, rng, a.draws)
+        rings = np.vstack([first.centres, second.centres])
+        results = [(old_exact, old_noisy)]
+        for plates in ((on_flat_surface(machine, first), on_flat_surface(machine, second)),
+                       (first.commands, second.commands)):
+            commands = np.vstack([plates[0], compensate(machine, model, plates[1]).commands])
+            results.append(fit_error(machine, model, truth, commands, rings, target, a.noise_um, rng, a.draws))
         floor = horizontal_floor(machine, truth, desired, compensated, target)
-        print(f"{cid:>9} {np.linalg.norm(target):9.2f} {floor:6.2f} | {flat_exact:10.2f} {np.median(flat_noisy):9.2f} "
-              f"{np.percentile(flat_noisy, 95):5.2f} | {pads_exact:10.2f} {np.median(pads_noisy):9.2f} "
-              f"{np.percentile(pads_noisy, 95):5.2f} {pads_noisy.max():5.2f} | {took:.0f}", flush=True)
+        cells = " | ".join(f"{exact:5.2f} {np.median(noisy):5.2f} {np.percentile(noisy, 95):5.2f} {noisy.max():5.2f}"
+                           for exact, noisy in results)
+        print(f"{cid:>9} {np.linalg.norm(target):9.2f} {floor:6.2f} | {cells} | {took:.0f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -80,9 +80,10 @@ def _nominal_tips(machine: Machine, commands: np.ndarray) -> np.ndarray:
 def ring_layout(machine: Machine, workpiece: Workpiece, command_ranges: np.ndarray, seed: int,
                 max_draws: int = 1000) -> Layout:
     """The rings and their dispensing commands: X, Y, Z, A, C over ``command_ranges`` (5, 2) (mm, deg)
-    by a Latin hypercube, each ring at the foot of the nominal tip at its pose on a pad ``step_mm``
-    -rounded ``standoff_mm`` below the tip; a ring nearer than ``min_spacing_mm`` to an earlier one
-    redrawn (uniform) up to ``max_draws`` times."""
+    by a Latin hypercube, each ring at the foot of the nominal tip at its pose, on a pad whose top
+    is ``standoff_mm`` below the tip rounded to ``step_mm`` (the commands then solved for that pad);
+    a ring nearer than ``min_spacing_mm`` to an earlier one redrawn (uniform) up to ``max_draws``
+    times."""
     rng = np.random.default_rng([seed, 31])
     ranges = np.asarray(command_ranges, dtype=float)
     drawn = latin_hypercube(workpiece.rings, ranges, rng)

@@ -34,7 +34,9 @@ def panel_row(campaign_id: str, results: Path, reports: Path) -> dict | None:
             "tip x": s["tip_offset_um"][0], "tip y": s["tip_offset_um"][1], "tip z": s["tip_offset_um"][2],
             "u z": s["tip_offset_uncertainty_um"][2],
             "mean meas−true x µm": float(ex.mean()), "mean meas−true y µm": float(ey.mean()),
-            "mean |meas−true| µm": float(np.hypot(ex, ey).mean()), "qualified": f"{len(good)}/{len(rows)}"}
+            "mean |meas−true| µm": float(np.hypot(ex, ey).mean()),
+            "rms meas−true per axis µm": float(np.sqrt(np.mean(np.concatenate([ex, ey]) ** 2))),
+            "fit dots": s["tip_fit_dots"], "qualified": f"{len(good)}/{len(rows)}"}
 
 
 def main() -> None:

@@ -20,22 +20,31 @@ def dispense_test(
     reports: Annotated[Path, typer.Option(help="reports root; the report goes to "
                                                "<reports>/<campaign_id>/<run>/dispensing/")] = Path("reports"),
     inspection_config: ConfigOption = None,
+    effect_module: Annotated[list[str] | None, typer.Option(
+        help="import a module that registers the user-written effect families the calibration added "
+             "(repeatable; default: the modules the calibration recorded)")] = None,
 ) -> None:
     """Dispense dots in ring targets (nominal, compensated), inspect them (§4.3), fit the tip's offset,
     fold it into the compensation and check it on a fresh workpiece."""
     from fivecal.cli import _on_valid_campaign
     from tasks.dispensing.inspection import load_config
+    from tasks.effects import load_effect_modules
 
     try:
         load_config(inspection_config)
     except (ValueError, OSError) as e:
         raise typer.BadParameter(str(e), param_hint="--inspection-config") from None
+    try:
+        load_effect_modules(effect_module or [], entry_point_group=None)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--effect-module") from None
 
     def run():
         from flows.dispense import dispense_test as flow
 
         return flow(str(campaign), None if results is None else str(results), str(reports), None,
-                    None if inspection_config is None else str(inspection_config))
+                    None if inspection_config is None else str(inspection_config),
+                    effect_modules=list(effect_module or []))
 
     try:
         summary = _on_valid_campaign(campaign, run)

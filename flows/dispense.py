@@ -1,10 +1,10 @@
 """The dispensing test (§4.3, §5.3), after ``calibrate``: see the tip, and close the calibration on it.
 
-A workpiece of ring targets on the C table; the machine dispenses a dot at every ring with the
-nominal commands and with the compensated ones (one capture, two phases), camera 1 images every ring,
-the §4.3 inspection measures each dot's offset from its ring, and the offsets of the compensated
-phase fix the tip's constant offset in the tool frame (tasks.dispensing.tip). The offset is folded
-into the identified model as its ``tool_offset`` effect and everything is compensated again: the
+Workpieces of ring targets on the C table; the machine dispenses a dot at every ring of one with the
+nominal commands and of a second one with the compensated ones (one capture, two phases), camera 1
+images every ring, the §4.3 inspection measures each dot's offset from its ring, and the offsets of
+both phases fix the tip's constant offset in the tool frame (tasks.dispensing.tip). The offset is
+folded into the identified model as its ``tool_offset`` effect and everything is compensated again: the
 ``check`` phase dispenses a fresh workpiece with it, and the validation poses are compensated with
 it (the ``verification`` table's phase ``after_tip``).
 
@@ -36,7 +36,7 @@ from tasks.dispensing.report import write_dispensing_report
 from tasks.dispensing.steps import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
 from tasks.dispensing.workpiece import Workpiece, imaging_commands, ring_layout
-from tasks.effects import parse_effect
+from tasks.effects import recorded_effects
 from tasks.error_model import ErrorModel
 from tasks.identification.measurements import assemble_measurements
 from tasks.ingest import load_campaign_metadata
@@ -72,10 +72,10 @@ def _capture(folder: Path, campaign: Path, rows: pd.DataFrame, workpiece: Workpi
     return manifest, inspected, _truth_columns(folder)
 
 
-def _table_rows(parts, machine, model, camera, surface_z_mm: float) -> pd.DataFrame:
+def _table_rows(parts, machine, model, camera) -> pd.DataFrame:
     frames = []
     for manifest, inspected, truth in parts:
-        rows = dispense_rows(manifest, inspected, machine, model, camera, surface_z_mm)
+        rows = dispense_rows(manifest, inspected, machine, model, camera)
         if truth is not None:
             rows = rows.merge(truth.drop(columns=["truth_nsd_r"], errors="ignore"), on="image_id", how="left")
         else:
@@ -92,11 +92,14 @@ def _fit_rows(rows: pd.DataFrame) -> pd.DataFrame:
 @flow(name="dispense-test")
 def dispense_test(campaign: str, results_root: str | None = None, reports_root: str = "reports",
                   run: str | None = None, inspection_config: str | None = None,
-                  workpiece: Workpiece = Workpiece()) -> dict[str, Any]:  # noqa: B008 (frozen)
+                  workpiece: Workpiece = Workpiece(),  # noqa: B008 (frozen)
+                  effect_modules: list[str] | None = None) -> dict[str, Any]:
     """The dispensing test of a calibrated campaign; returns a summary (tip offset ± u, capture
     states, tables, report; for simulated campaigns the true constant tool-frame error before and
     after the tip fit). Reads the tables ``calibrate`` wrote (images, poses, camera_calibration, pige's
-    provenance) and re-uses its cached identification."""
+    provenance) and re-uses its cached identification. effect_modules: the user modules defining the
+    families of the effects the calibration added (``--effect-module``); by default the ones the
+    calibration recorded."""
     logger = get_run_logger()
     config = load_config(inspection_config)
     folder = Path(campaign).resolve()
@@ -114,21 +117,26 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     simulated = is_simulated(folder)
     # the truth, with the user effect modules recorded beside it, read only to report against it
     truth_doc, truth = read_truth(folder) if simulated else (None, None)
-    base = ErrorModel(effects=[parse_effect(s) for s in calib_prov.get("effects", [])])
+    base = ErrorModel(effects=recorded_effects(calib_prov.get("effects", []), calib_prov.get("effect_modules", []),
+                                               effect_modules))
     orientation = calib_prov.get("orientation_objective", "full")
     measurements = assemble_measurements(images, pose_table)
     model = identify_task.submit(machine, measurements, truth, base).result().model  # calibrate's, cached
 
     five_axis = measurements.stage("pige").commands
     seed = int(truth_doc["seed"]) if simulated else int(content_key(campaign_id)[:8], 16)
-    layout = ring_layout(machine, workpiece, np.column_stack([five_axis.min(axis=0), five_axis.max(axis=0)]), seed)
-    centres, nominal = layout.centres, layout.commands
-    imaging = imaging_commands(machine, workpiece, centres, CAMERA)
-    compensated = compensate_task.submit(machine, model, nominal, orientation).result().commands
+    ranges = np.column_stack([five_axis.min(axis=0), five_axis.max(axis=0)])
+    # the nominal and the compensated phase on two workpieces drawn apart: twice the poses sampled
+    layouts = {"nominal": ring_layout(machine, workpiece, ranges, seed),
+               "compensated": ring_layout(machine, workpiece, ranges, seed + 1)}
+    imaging = {k: imaging_commands(machine, v.centres, v.surface_z_mm, CAMERA) for k, v in layouts.items()}
+    dispensed = {"nominal": layouts["nominal"].commands,
+                 "compensated": compensate_task.submit(machine, model, layouts["compensated"].commands,
+                                                       orientation).result().commands}
     full_camera = full_resolution(cameras[CAMERA], round(load_machine("prototype").cameras[CAMERA].width_px
                                                          / cameras[CAMERA].width_px))
-    first_rows = pd.concat([plan_rows("nominal", centres, nominal, imaging),
-                            plan_rows("compensated", centres, compensated, imaging)], ignore_index=True)
+    first_rows = pd.concat([plan_rows(k, layouts[k].centres, layouts[k].surface_z_mm, dispensed[k], imaging[k])
+                            for k in ("nominal", "compensated")], ignore_index=True)
     key = content_key(DISPENSE_CODE_VERSION, first_rows.round(9), workpiece.to_dict())[:12]
     first = _capture(folder / "captures" / f"dispense-{key}", folder, first_rows, workpiece, seed, simulated,
                      config, logger)
@@ -137,8 +145,8 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
         summary["captures"]["dispense"] = "requested"
         return summary
     summary["captures"]["dispense"] = "measured"
-    rows = _table_rows([first], machine, model, full_camera, workpiece.surface_z_mm)
-    fit_on = _fit_rows(rows[rows["phase"] == "compensated"])
+    rows = _table_rows([first], machine, model, full_camera)
+    fit_on = _fit_rows(rows[rows["phase"].isin(["nominal", "compensated"])])
     fit = fit_tip_offset(machine, model, fit_on[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy(float),
                          fit_on[["ring_x_mm", "ring_y_mm"]].to_numpy(float),
                          fit_on[["dx_um", "dy_um"]].to_numpy(float) * 1e-3)
@@ -147,14 +155,17 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
                 + f" µm; tool-axis error ∝ sin A {fit.tilt_um:+.2f} ± {fit.tilt_uncertainty_um:.2f} µm; dot residual "
                 f"rms {fit.residual_rms_um:.2f} µm")
 
-    check_cmd = compensate_task.submit(machine, fit.model, nominal, orientation).result().commands
-    check_rows = plan_rows("check", centres, check_cmd, imaging)
+    # a fresh copy of the compensated phase's workpiece
+    check_layout = layouts["compensated"]
+    check_cmd = compensate_task.submit(machine, fit.model, check_layout.commands, orientation).result().commands
+    check_rows = plan_rows("check", check_layout.centres, check_layout.surface_z_mm, check_cmd,
+                           imaging["compensated"])
     check_key = content_key(DISPENSE_CODE_VERSION, check_rows.round(9), workpiece.to_dict())[:12]
     check = _capture(folder / "captures" / f"dispense-check-{check_key}", folder, check_rows, workpiece, seed + 1,
                      simulated, config, logger)
     parts = [first] if check is None else [first, check]
     summary["captures"]["check"] = "requested" if check is None else "measured"
-    rows = _table_rows(parts, machine, model, full_camera, workpiece.surface_z_mm)
+    rows = _table_rows(parts, machine, model, full_camera)
 
     # the held-out poses, compensated with the tip folded in
     validation = measurements.stage("validation", camera=CAMERA)
@@ -167,8 +178,9 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
                   "tip_offset_um": fit.offset_um.tolist(), "tip_offset_uncertainty_um": fit.uncertainty_um.tolist(),
                   "tip_fit_dots": fit.dots, "tip_fit_residual_rms_um": fit.residual_rms_um,
                   "tip_tilt_um": fit.tilt_um, "tip_tilt_uncertainty_um": fit.tilt_uncertainty_um,
-                  "calibration": {k: calib_prov.get(k) for k in ("effects", "orientation_objective",
-                                                                  "identification_code")}}
+                  "calibration": {k: calib_prov.get(k) for k in ("effects", "effect_modules", "orientation_objective",
+                                                                  "identification_code")},
+                  "effect_modules": list(effect_modules or [])}
     summary["tables"]["dispense_inspection"] = str(write_partition("dispense_inspection", campaign_id, rows,
                                                                    provenance, root))
     verification = read_table("verification", root, campaign_id)

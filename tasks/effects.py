@@ -397,6 +397,21 @@ def load_effect_modules(modules, entry_point_group: str | None = ENTRY_POINT_GRO
     return sorted(EFFECTS)
 
 
+def recorded_effects(specs, recorded_modules, modules=None) -> list[Effect]:
+    """The effects a calibration fitted, from the specs it recorded (its ``pige`` provenance's
+    ``effects``): the user modules that define their families imported first, ``modules`` when given
+    (``--effect-module``), else the ones the calibration recorded (``effect_modules``). ValueError
+    naming the module or the spec that cannot be read, and what to pass instead."""
+    modules = list(modules) if modules else [str(m) for m in recorded_modules or []]
+    try:
+        load_effect_modules(modules)
+        return [parse_effect(s) for s in specs or []]
+    except ValueError as e:
+        raise ValueError(f"the calibration's effects cannot be read ({e}): pass the module that defines their "
+                         f"family with --effect-module (calibrated with effect modules {list(recorded_modules or [])})"
+                         ) from None
+
+
 def module_source_file(module: str) -> Path:
     """The ``.py`` file of an effect module given as :func:`load_effect_modules` takes it (a ``.py``
     path or a dotted path, imported to find its file); ValueError naming it when it has none."""

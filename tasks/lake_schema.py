@@ -195,12 +195,13 @@ _CAMERA_INTRINSICS = (("fx_px", "px", "focal length along u"), ("fy_px", "px", "
                       ("k3", "", "radial distortion k3"))
 
 def _dispense_columns() -> tuple[Column, ...]:
-    surface = "on the workpiece surface (workpiece frame, z = 0)"
+    surface = "on the top of the ring's pad (workpiece frame, z = surface_z_mm)"
     cols = [_s("image_id", "the ring's image in the capture folder"),
             _s("phase", "nominal | compensated | check (compensated with the tip offset folded in)"),
             _s("ring_id", "ring target, row by row over the workpiece"),
             _c("ring_x_mm", "float64", "mm", WORKPIECE, "the ring's printed centre, x"),
-            _c("ring_y_mm", "float64", "mm", WORKPIECE, "the ring's printed centre, y")]
+            _c("ring_y_mm", "float64", "mm", WORKPIECE, "the ring's printed centre, y"),
+            _c("surface_z_mm", "float64", "mm", WORKPIECE, "height of the top of the ring's pad above plate a")]
     for axis, unit, _ in _AXES:
         cols.append(_c(f"{axis}_{'deg' if unit == 'deg' else 'mm'}", "float64", unit, COMMAND,
                        f"{axis} command the dot was dispensed at"))

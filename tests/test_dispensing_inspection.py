@@ -121,8 +121,9 @@ def test_lab_request_round_trip_and_manifest_errors(tmp_path):
 
     centres = np.array([[1.0, 2.0], [3.0, -4.0]])
     commands = np.arange(10, dtype=float).reshape(2, 5)
-    rows = plan_rows("compensated", centres, commands, commands + 1)
+    rows = plan_rows("compensated", centres, np.array([19.0, 21.0]), commands, commands + 1)
     assert list(rows["image_id"]) == ["compensated_ring000", "compensated_ring001"]
+    assert list(rows["surface_z_mm"]) == [19.0, 21.0]
     plan = write_plan(tmp_path / "cap", rows)
     assert plan.name == PLAN_FILE
     pd.read_csv(plan).to_csv(tmp_path / "cap" / "manifest.csv", index=False)  # the lab's manifest: full frames

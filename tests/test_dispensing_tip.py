@@ -31,7 +31,7 @@ def test_nominal_tip_sits_above_each_ring_and_rings_do_not_touch(setup):
     machine, _, _, wp, layout = setup
     tip = forward(machine, layout.commands).tool_in_workpiece()[:, :3, 3]
     assert np.abs(tip[:, :2] - layout.centres).max() < 1e-9
-    np.testing.assert_allclose(tip[:, 2], wp.surface_z_mm + wp.standoff_mm, atol=1e-9)
+    np.testing.assert_allclose(tip[:, 2], layout.surface_z_mm + wp.standoff_mm, atol=1e-9)
     gaps = np.linalg.norm(layout.centres[:, None] - layout.centres[None], axis=2) + 1e9 * np.eye(len(tip))
     assert gaps.min() >= wp.min_spacing_mm
     assert np.ptp(layout.commands[:, 3]) > 50 and np.ptp(layout.commands[:, 4]) > 300  # A and C spread
@@ -76,3 +76,16 @@ def test_tip_fit_needs_a_tilt(setup):
     flat[:, 3] = 0.0
     with pytest.raises(ValueError, match="more than one A"):
         fit_tip_offset(machine, identified, flat, layout.centres, np.zeros((len(flat), 2)))
+
+
+def test_rings_sit_on_pads_that_spread_the_dispensing_z_over_the_poses_z_range(setup):
+    machine = setup[0]
+    wp = Workpiece(rings=60)
+    z_range = (-4.0, 1.0)
+    layout = ring_layout(machine, wp, np.array([[-5, 5], [-20, 20], z_range, [-24, 24], [-180, 180]]), 5)
+    np.testing.assert_allclose(layout.surface_z_mm, np.round(layout.surface_z_mm / wp.step_mm) * wp.step_mm)
+    tip = forward(machine, layout.commands).tool_in_workpiece()[:, :3, 3]
+    np.testing.assert_allclose(tip[:, 2], layout.surface_z_mm + wp.standoff_mm, atol=1e-9)
+    z = layout.commands[:, 2]  # the pad's rounding moves each Z command by at most half a step
+    assert z.min() >= z_range[0] - wp.step_mm / 2 and z.max() <= z_range[1] + wp.step_mm / 2
+    assert np.ptp(z) > 0.8 * (z_range[1] - z_range[0]) and len(np.unique(layout.surface_z_mm)) > 5

@@ -5,8 +5,8 @@ then camera 1 images each ring from straight above (A = C = 0). The folder
 ``<campaign>/captures/dispense-<phase>-<key>/`` holds
 
 * ``dispense_plan.csv`` (written by fivecal): per ring, image_id, path, phase, ring_id, the ring
-  centre (mm, workpiece frame), the dispensing commands (X_mm … C_deg) and the imaging commands
-  (image_X_mm … image_C_deg);
+  centre and the height of its pad's top (mm, workpiece frame), the dispensing commands (X_mm …
+  C_deg) and the imaging commands (image_X_mm … image_C_deg);
 * ``images/camera1/<image_id>.png`` and ``manifest.csv`` (written by the lab, or by the simulator):
   the plan's rows plus ``roi_x0``, ``roi_y0``, the sensor pixel of the image's top-left pixel
   (0, 0 for a full frame), and ``binning`` (1 for a full-resolution image);
@@ -42,12 +42,13 @@ DEFECT_RATE = 0.04
 CAMERA = "camera1"
 
 
-def plan_rows(phase: str, centres: np.ndarray, dispense: np.ndarray, imaging: np.ndarray) -> pd.DataFrame:
-    """The capture's rows (see the module docstring), one per ring: centres (N, 2) mm, dispensing and
-    imaging commands (N, 5)."""
+def plan_rows(phase: str, centres: np.ndarray, surface_z_mm: np.ndarray, dispense: np.ndarray, imaging: np.ndarray
+              ) -> pd.DataFrame:
+    """The capture's rows (see the module docstring), one per ring: centres (N, 2) and pad heights
+    (N,) mm, dispensing and imaging commands (N, 5)."""
     ids = ring_ids(len(dispense))
     rows = pd.DataFrame({"image_id": [f"{phase}_{r}" for r in ids], "phase": phase, "ring_id": ids,
-                         "ring_x_mm": centres[:, 0], "ring_y_mm": centres[:, 1]})
+                         "ring_x_mm": centres[:, 0], "ring_y_mm": centres[:, 1], "surface_z_mm": surface_z_mm})
     rows.insert(1, "path", [f"images/{CAMERA}/{i}.png" for i in rows["image_id"]])
     rows = pd.concat([rows, commands_frame(dispense),
                       commands_frame(imaging).add_prefix("image_")], axis=1)
@@ -77,6 +78,7 @@ def simulate_dispense_capture(campaign_folder: Path, out_folder: Path, rows: pd.
     dispense = rows[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy(float)
     imaging = rows[["image_X_mm", "image_Y_mm", "image_Z_mm", "image_A_deg", "image_C_deg"]].to_numpy(float)
     centres = rows[["ring_x_mm", "ring_y_mm"]].to_numpy(float)
+    surface = rows["surface_z_mm"].to_numpy(float)
     offsets = landing_points(machine, truth, dispense) - centres
     with staged_folder(out_folder) as staging:
         (staging / "images" / CAMERA).mkdir(parents=True)
@@ -85,7 +87,7 @@ def simulate_dispense_capture(campaign_folder: Path, out_folder: Path, rows: pd.
         lighting = lighting_of(seed)
         truth_rows, roi = [], []
         for i, row in enumerate(rows.itertuples(index=False)):
-            ring_px, jac = ring_projection(machine, truth, imaging[i], centres[i], workpiece.surface_z_mm)
+            ring_px, jac = ring_projection(machine, truth, imaging[i], centres[i], surface[i])
             x0, y0 = int(np.rint(ring_px[0])) - ROI_PX // 2, int(np.rint(ring_px[1])) - ROI_PX // 2
             defect = draw_defect(rng, DEFECT_RATE)
             dot = random_dot(rng, offsets[i], workpiece.dot_diameter_mm, defect)

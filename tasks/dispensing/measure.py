@@ -3,7 +3,8 @@ pixels onto the workpiece surface. Analysis side: no truth is read here.
 
 Pixels to millimetres: each centre's pixel (the image's region-of-interest offset added) is
 undistorted with camera 1's calibrated intrinsics (at full resolution) and its ray intersected with
-the workpiece surface (z = 0) at the camera pose the identified model gives for the imaging command.
+the top of the ring's pad (the manifest's ``surface_z_mm``) at the camera pose the identified model
+gives for the imaging command.
 The dot − ring offset is a difference over a millimetre at the image centre, so neither the pose nor
 the intrinsics' bias reaches it beyond a few nanometres.
 """
@@ -24,8 +25,8 @@ from tasks.error_model import UM, ErrorModel
 from tasks.kinematics import forward
 from tasks.machine import Machine
 
-REQUIRED = ("image_id", "path", "phase", "ring_id", "ring_x_mm", "ring_y_mm", "X_mm", "Y_mm", "Z_mm", "A_deg",
-            "C_deg", "image_X_mm", "image_Y_mm", "image_Z_mm", "image_A_deg", "image_C_deg")
+REQUIRED = ("image_id", "path", "phase", "ring_id", "ring_x_mm", "ring_y_mm", "surface_z_mm", "X_mm", "Y_mm",
+            "Z_mm", "A_deg", "C_deg", "image_X_mm", "image_Y_mm", "image_Z_mm", "image_A_deg", "image_C_deg")
 FEATURES = ("area_px2", "perimeter_px", "diameter_px", "circularity", "nsd_r", "cov_i")
 
 
@@ -78,9 +79,9 @@ def full_resolution(camera: CameraModel, factor: int) -> CameraModel:
 
 
 def pixels_to_surface(machine: Machine, model: ErrorModel | None, camera: CameraModel, imaging: np.ndarray,
-                      uv: np.ndarray, surface_z_mm: float, camera_name: str = "camera1") -> np.ndarray:
-    """(N, 2) points (mm, workpiece frame) of the surface z = ``surface_z_mm`` seen at sensor pixels
-    ``uv`` (N, 2) from the imaging commands (N, 5); NaN where ``uv`` is NaN."""
+                      uv: np.ndarray, surface_z_mm, camera_name: str = "camera1") -> np.ndarray:
+    """(N, 2) points (mm, workpiece frame) of the surfaces z = ``surface_z_mm`` (scalar or (N,)) seen at
+    sensor pixels ``uv`` (N, 2) from the imaging commands (N, 5); NaN where ``uv`` is NaN."""
     T = se3.inverse(forward(machine, imaging, model).relative(machine.workpiece, camera_name))  # camera in wp
     ok = np.all(np.isfinite(uv), axis=1)
     out = np.full((len(uv), 2), np.nan)
@@ -91,16 +92,16 @@ def pixels_to_surface(machine: Machine, model: ErrorModel | None, camera: Camera
     rays = np.column_stack([norm, np.ones(len(norm))])
     d = np.einsum("nij,nj->ni", T[ok, :3, :3], rays)
     o = T[ok, :3, 3]
-    s = (surface_z_mm - o[:, 2]) / d[:, 2]
+    s = (np.broadcast_to(surface_z_mm, (len(uv),))[ok] - o[:, 2]) / d[:, 2]
     out[ok] = (o + s[:, None] * d)[:, :2]
     return out
 
 
 def dispense_rows(manifest: pd.DataFrame, inspected: pd.DataFrame, machine: Machine, model: ErrorModel,
-                  camera: CameraModel, surface_z_mm: float) -> pd.DataFrame:
+                  camera: CameraModel) -> pd.DataFrame:
     """The ``dispense_inspection`` rows of one capture (truth columns not included): commands, ring and
-    dot centres in sensor pixels and on the surface at ``surface_z_mm`` (mm), dx_um/dy_um (dot − ring,
-    workpiece frame),
+    dot centres in sensor pixels and on the ring's pad (the manifest's ``surface_z_mm``) (mm),
+    dx_um/dy_um (dot − ring, workpiece frame),
     the dot's diameter in mm and its features. ``camera``: camera 1 at full resolution."""
     df = manifest.merge(inspected, on="image_id", how="left")
     roi = df[["roi_x0", "roi_y0"]].to_numpy(float)
@@ -108,6 +109,7 @@ def dispense_rows(manifest: pd.DataFrame, inspected: pd.DataFrame, machine: Mach
     # image pixel -> sensor pixel: pixel centres of a binned image sit at (i + ½)·b − ½
     ring_px = (df[["ring_u_px", "ring_v_px"]].to_numpy(float) + 0.5) * binning - 0.5 + roi
     dot_px = (df[["dot_u_px", "dot_v_px"]].to_numpy(float) + 0.5) * binning - 0.5 + roi
+    surface_z_mm = df["surface_z_mm"].to_numpy(float)
     imaging = df[["image_X_mm", "image_Y_mm", "image_Z_mm", "image_A_deg", "image_C_deg"]].to_numpy(float)
     ring_mm = pixels_to_surface(machine, model, camera, imaging, ring_px, surface_z_mm)
     dot_mm = pixels_to_surface(machine, model, camera, imaging, dot_px, surface_z_mm)

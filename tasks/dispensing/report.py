@@ -125,7 +125,8 @@ def write_dispensing_report(out_dir: Path, rows: pd.DataFrame, verification: pd.
           "Dots dispensed in ring targets (§4.3, §5.3), inspected by §4.3, their offsets from the rings fitting the "
           "tip's constant offset in the tool frame (docs/dispensing-test.md).", "",
           "## The tip offset found", "",
-          f"From {fit.dots} qualified dots of the compensated phase; dot residual rms {fit.residual_rms_um:.2f} µm. "
+          f"From {fit.dots} qualified dots of the nominal and compensated phases; dot residual rms "
+          f"{fit.residual_rms_um:.2f} µm. "
           "Added to the model's tool_offset effect (tip frame: x, y across the tool, z along it).", "",
           "| tip axis | offset (µm) | u (µm) |", "|---|---:|---:|", tip, "",
           f"Fitted beside it, not folded in: a tool-axis error growing as sin A, {fit.tilt_um:+.2f} ± "

@@ -16,7 +16,7 @@ from tasks.dispensing.measure import inspect_capture, load_capture_manifest
 from tasks.dispensing.workpiece import Workpiece
 from tasks.vision import content_key
 
-DISPENSE_CODE_VERSION = "dispense-3"
+DISPENSE_CODE_VERSION = "dispense-4"
 
 
 def _images_digest(folder: Path, manifest: pd.DataFrame) -> str:

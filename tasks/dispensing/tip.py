@@ -3,8 +3,8 @@
 A needle dispenser holds its opening a small standoff above the surface; the drop that forms
 there (well under a millimetre: surface tension dominates gravity, Bond number ≪ 1) wets the
 surface at the point nearest the opening, the foot of the surface normal through it. A dot lands
-at the (x, y) of the real tip position in the workpiece frame (surface z = 0). Its offset from the
-ring is the tip's error in the surface plane: a tip offset t in the tool frame moves the dot by
+at the (x, y) of the real tip position in the workpiece frame, whatever its height. Its offset from
+the ring is the tip's error in the surface plane: a tip offset t in the tool frame moves the dot by
 P R t (R the tip rotation, P the projection onto the surface), so at A = 0 the component along the
 tool axis is invisible and the spread of A over the rings (sin A) makes it seen. Along the tool
 axis the drop could not tell it: moving the opening along its own axis moves that axis' trace on

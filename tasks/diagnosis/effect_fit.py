@@ -272,13 +272,13 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
             break
     pdge = extract_pdges(machine, ext, imaging_corrected(machine, ext, measurements), truth)  # the table
     alternation = CalibrationResult(pdge, fit, extraction_model=ext)
-    held = not fit.fit.identifiable[n_const:].any()
-    if held:  # every effect parameter stays at its start: the calibration of that model, joint step included
-        from tasks.identification.joint_fit import joint_refine
+    # the calibration of that model ends with the joint step, as calibrate() does: without it the
+    # compensated tip carries the alternation's profile errors (docs/effects.md)
+    from tasks.identification.joint_fit import joint_refine
 
-        skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
-        pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit)
-        fit = _keep_unidentified(fit, alternation.pige.fit.identifiable)
+    skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
+    pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit)
+    fit = _keep_unidentified(fit, alternation.pige.fit.identifiable)
     notes = []
     for i, s in enumerate(specs_e):
         if not fit.fit.identifiable[n_const + i]:
@@ -288,17 +288,12 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
                          f"poses that would identify it: {identifying_poses(e)}.")
     truth_fit = None
     if truth is not None:  # the truth in the fit's gauge: the same calibration of its exact poses
-        from tasks.identification.pige_identification import alternate, calibrate
+        from tasks.identification.pige_identification import calibrate
 
         clean = synthetic_measurements(machine, truth, measurements)
         if truth.effects:
             truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
-        elif held:  # as calibrate() expresses the truth for a fit that ends with the joint step
+        else:  # as calibrate() expresses the truth for a fit that ends with the joint step
             truth_fit = _joint_truth(machine, clean, const_specs, pdge)
-        else:  # the alternation, as this fit's (the joint step is not part of a fit with effects)
-            clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
-            _, truth_fit, _ = alternate(machine, ErrorModel(), clean, clean_poses, const_specs)
-    if held:
-        return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True,
-                                 alternation=alternation)
-    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)
+    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True,
+                             alternation=alternation)

@@ -18,7 +18,7 @@ best() {
   local accepted; accepted=$(sed -n "s/^next: fivecal calibrate .* --add-effect '\(.*\)'$/\1/p" "$1")
   [ -n "$accepted" ] && echo "$accepted" || sed -n 's/^Nothing significant: the best candidate, `\([^`]*\)`.*/\1/p' "$1" | head -1
 }
-sim() { local out=$1; shift; [ -e "$C/$out/manifest.csv" ] || nice -n 10 $FC simulate "$C/$out" --size small --plan small "$@" > "$L/$out-simulate.log" 2>&1; }
+sim() { local out=$1; shift; [ -e "$C/$out/manifest.csv" ] || nice -n 10 $FC simulate "$C/$out" --size small --plan "${PLAN:-context}" "$@" > "$L/$out-simulate.log" 2>&1; }
 run() { local log=$1; shift; tail -1 "$L/$log.log" 2>/dev/null | grep -q '^[0-9.]* s$' && return; nice -n 10 /usr/bin/time -f "%e s" $FC "$@" --results "$R" --reports "$REP" > "$L/$log.log" 2>&1; }
 ids=()
 for seed in "$@"; do

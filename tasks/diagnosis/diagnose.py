@@ -53,7 +53,7 @@ from tasks.identification.measurements import Measurements
 from tasks.identification.pige_identification import IDENTIFICATION_CAMERA, CalibrationResult
 from tasks.machine import Machine
 
-DIAGNOSIS_CODE_VERSION = "diagnosis-3"  # bump when diagnose() would return something else for the same inputs
+DIAGNOSIS_CODE_VERSION = "diagnosis-4"  # bump when diagnose() would return something else for the same inputs
 ALPHA = 1e-3
 MIN_GAIN = 0.05  # smallest relative fall of the cross-validated RMS that makes a candidate worth accepting
 MIN_DELTA_BIC = -10.0
@@ -155,7 +155,10 @@ def _diagnose(machine, measurements, result, candidates, max_effects, alpha, fol
     lin = linearise(machine, measurements, result)
     scorer = Scorer(lin.residual, lin.own, gls_transform(*profile_noise(lin)))
     test_folds = fold_rows(lin, folds)
-    cv_before = rms(held_out_errors(lin.residual, lin.own, test_folds))
+    # held-out errors in the score's metric, which weighs down the PDGE profiles' noise
+    T = scorer.transform
+    r_cv = T(lin.residual)
+    cv_before = rms(held_out_errors(r_cv, T(lin.own), test_folds))
     camera = IDENTIFICATION_CAMERA
     accepted: list[tuple[int, _Scored]] = []
     sentences: list[str] = []
@@ -172,12 +175,12 @@ def _diagnose(machine, measurements, result, candidates, max_effects, alpha, fol
         # identifiable candidates first: an absorbed one "explains" only by a huge amplitude on the
         # sliver of its signature that the model cannot reproduce
         final.sort(key=lambda s: (s.absorbed or s.unseen, s.stats["delta_bic"]))
-        X_have = np.hstack([lin.own] + [a.G for _, a in accepted])
-        e_now = held_out_errors(lin.residual, X_have, test_folds)
+        X_have = T(np.hstack([lin.own] + [a.G for _, a in accepted]))
+        e_now = held_out_errors(r_cv, X_have, test_folds)
         cv_now = rms(e_now)
         for i, s in enumerate(final):
             if s.k > 0 and (i < CONFIRM or s.statistically_significant(alpha)):
-                e_with = held_out_errors(lin.residual, np.hstack([X_have, s.G]), test_folds)
+                e_with = held_out_errors(r_cv, np.hstack([X_have, T(s.G)]), test_folds)
                 s.cv, s.cv_p = rms(e_with), cv_improvement_p(e_now, e_with)
                 s.cv_gain = 1.0 - s.cv / cv_now if cv_now > 0 else 0.0
         if step == max_effects or not final or not final[0].significant(alpha, min_gain):

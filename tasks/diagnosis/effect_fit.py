@@ -272,13 +272,17 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
             break
     pdge = extract_pdges(machine, ext, imaging_corrected(machine, ext, measurements), truth)  # the table
     alternation = CalibrationResult(pdge, fit, extraction_model=ext)
+    held = not fit.fit.identifiable[n_const:].any()
     # the calibration of that model ends with the joint step, as calibrate() does: without it the
-    # compensated tip carries the alternation's profile errors (docs/effects.md)
-    from tasks.identification.joint_fit import joint_refine
+    # compensated tip carries the alternation's profile errors (docs/effects.md). The joint step models
+    # the poses as measured, so a fitted effect that changes a camera's imaging keeps the alternation's.
+    joint = held or not any(_acts_on_cameras(e) for e in effects)
+    if joint:
+        from tasks.identification.joint_fit import joint_refine
 
-    skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
-    pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit)
-    fit = _keep_unidentified(fit, alternation.pige.fit.identifiable)
+        skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
+        pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit)
+        fit = _keep_unidentified(fit, alternation.pige.fit.identifiable)
     notes = []
     for i, s in enumerate(specs_e):
         if not fit.fit.identifiable[n_const + i]:
@@ -288,12 +292,21 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
                          f"poses that would identify it: {identifying_poses(e)}.")
     truth_fit = None
     if truth is not None:  # the truth in the fit's gauge: the same calibration of its exact poses
-        from tasks.identification.pige_identification import calibrate
+        from tasks.identification.pige_identification import alternate, calibrate
 
         clean = synthetic_measurements(machine, truth, measurements)
         if truth.effects:
             truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
-        else:  # as calibrate() expresses the truth for a fit that ends with the joint step
+        elif joint:  # as calibrate() expresses the truth for a fit that ends with the joint step
             truth_fit = _joint_truth(machine, clean, const_specs, pdge)
-    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True,
-                             alternation=alternation)
+        else:  # the alternation, as this fit's
+            clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
+            _, truth_fit, _ = alternate(machine, ErrorModel(), clean, clean_poses, const_specs)
+    if joint:
+        return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True,
+                                 alternation=alternation)
+    return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)
+
+
+def _acts_on_cameras(effect: Effect) -> bool:
+    return type(effect).camera_changes is not Effect.camera_changes

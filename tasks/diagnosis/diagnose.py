@@ -16,13 +16,13 @@ out (eq. 2, :mod:`tasks.diagnosis.score`). Candidates are ranked by ΔBIC. The l
 - its F-test p-value, multiplied by the number of independent variants tried (candidates and
   scanned frequencies: a Bonferroni bound), is below ``alpha``;
 - ΔBIC < −10;
-- the cross-validated refit with it (eq. 3, :mod:`tasks.diagnosis.crossval`) beats the one without
-  significantly (paired test, p < ``alpha``) and by a material amount: the cross-validated RMS falls
-  by at least ``min_gain`` (5 % by default). With ten thousand residuals a p-value alone flags any
-  trace of structure — on an image campaign with no hidden effect the camera self-calibration's own
-  bias lets ``lens_distortion`` lower the CV RMS by 2.0 % at p = 8e-9 — and a term that changes the
-  prediction by that little is not worth a model parameter. Such candidates are named, with their
-  gain, as detectable but not material;
+- the cross-validated refit with it (eq. 3, :mod:`tasks.diagnosis.crossval`, in the score's metric)
+  beats the one without significantly (paired test, p < ``alpha``) and by a material amount: the
+  cross-validated RMS falls by at least ``min_gain`` (5 % by default). With ten thousand residuals a
+  p-value alone flags any trace of structure — on an image campaign with no hidden effect the camera
+  self-calibration's own bias let ``lens_distortion`` lower the whitened CV RMS by 2.0 % at p = 8e-9 —
+  and a term that changes the prediction by that little is not worth a model parameter. Such
+  candidates are named, with their gain, as detectable but not material;
 - no other significant candidate explains the residual as well: if adding the leader to a model that
   holds candidate B does not improve the fit significantly (conditional F-test, p > ``alpha``), this
   campaign cannot tell them apart; they are reported as one group and none is accepted.
@@ -68,7 +68,7 @@ class Diagnosis:
     """table: the ``diagnosis`` table (one row per candidate; accepted effects first, in the order
     accepted, then the rest by ΔBIC against the final residual). sentences: the verdict.
     best: spec of the first accepted effect (fitted amplitudes), or None. accepted: specs accepted in
-    order. cv_rms_before: cross-validated RMS of the model as calibrated (whitened). notes: families
+    order. cv_rms_before: cross-validated RMS of the model as calibrated (the score's metric). notes: families
     that could not take part."""
 
     table: pd.DataFrame

@@ -242,7 +242,9 @@ def calibrate_with_effects(machine: Machine, measurements: Measurements, base: E
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
                            rounds: int = ROUNDS) -> CalibrationResult:
     """The calibration of :func:`tasks.identification.pige_identification.calibrate` with the parameters
-    of ``base.effects`` fitted too (their values in ``base`` are the starting point). The pige table
+    of ``base.effects`` fitted too (their values in ``base`` are the starting point), by the alternation
+    and then the joint step (the alternation's solution alone when a fitted effect acts on a camera's
+    imaging; it is kept in ``alternation``, which the diagnosis linearises about). The pige table
     lists them with kind "effect"; ``notes`` says which the poses cannot identify and what would.
     Runs with one BLAS thread (many small products; two contending threads are far slower)."""
     with threadpool_limits(limits=1):

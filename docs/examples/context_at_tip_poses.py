@@ -13,6 +13,7 @@ poses with pose noise), and how far the true compensated tip sits from the clean
 seed and validation poses, mean of the per-pose distance). Prints one row per (seed, hidden effect, model).
 
     python docs/examples/context_at_tip_poses.py 10 67 161
+    python docs/examples/context_at_tip_poses.py --plan small 10 67     # another of tasks.campaign_plan.PLANS
 """
 
 import sys
@@ -22,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from tasks import se3
-from tasks.campaign_plan import CampaignPlan, plan_campaign
+from tasks.campaign_plan import PLANS, plan_campaign
 from tasks.capture_request import CAPTURE_GAP_IMAGES, planned_capture_context
 from tasks.compensation import compensate, desired_tip_poses
 from tasks.diagnosis import diagnose
@@ -37,7 +38,6 @@ from tasks.verification import tip_errors_with_tool_direction, vbm_errors
 from tasks.verification_capture import capture_plan
 
 COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 * ARCSEC) ** 2] * 2 + [(1.15 * ARCSEC) ** 2])
-PLAN = CampaignPlan.context()
 MODULE = "docs/examples/cross_backlash.py"
 HIDDEN = {"none": None, "drift": "thermal_drift:axis=X,driver=time,um_per_hour=20",
           "backlash": "backlash:axis=Z,amount_um=8", "user": "cross_backlash:axis=X,along=Y,amount_um=8"}
@@ -112,4 +112,7 @@ def main(seeds):
 
 
 if __name__ == "__main__":
-    main([int(s) for s in sys.argv[1:]] or [10, 67, 161])
+    args = sys.argv[1:]
+    name = args[args.index("--plan") + 1] if "--plan" in args else "context"
+    PLAN = PLANS[name]()
+    main([int(a) for a in args if a.isdigit()] or [10, 67, 161])

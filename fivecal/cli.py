@@ -45,7 +45,8 @@ def simulate(
     seed: Annotated[int, typer.Option(help="seed of poses, noise and images")] = 0,
     size: Annotated[str, typer.Option(help="image size: full (3072x2048) or small (768x512)")] = "full",
     effect: Annotated[list[str] | None, typer.Option(help="inject an effect: family:key=value,...")] = None,
-    plan: Annotated[str, typer.Option(help="stage sizes: default (the seed's) or small (tests)")] = "default",
+    plan: Annotated[str, typer.Option(help="stage sizes: default (the seed's), small (tests) or context "
+                                           "(small, in two passes over an hour: docs/effects.md)")] = "default",
     overwrite: Annotated[bool, typer.Option(help="replace an existing campaign folder")] = False,
     dask_address: DaskAddress = None,
     dask_workers: DaskWorkers = None,
@@ -66,8 +67,10 @@ def simulate(
 
     if size not in ("full", "small"):
         raise typer.BadParameter("size must be 'full' or 'small'", param_hint="--size")
-    if plan not in ("default", "small"):
-        raise typer.BadParameter("plan must be 'default' or 'small'", param_hint="--plan")
+    from tasks.campaign_plan import PLANS
+
+    if plan not in PLANS:
+        raise typer.BadParameter(f"plan must be one of {', '.join(PLANS)}", param_hint="--plan")
     for spec in effect or []:
         try:
             parse_effect(spec)
@@ -77,7 +80,7 @@ def simulate(
     from flows.simulate import simulate_campaign
 
     flow = simulate_campaign.with_options(task_runner=image_task_runner(dask_address, dask_workers))
-    path = flow(str(out), seed=seed, size=size, effects=list(effect or []), small_plan=plan == "small",
+    path = flow(str(out), seed=seed, size=size, effects=list(effect or []), plan=plan,
                 overwrite=overwrite, effect_modules=list(effect_module or []))
     typer.echo(f"campaign written to {path}")
 

@@ -19,9 +19,11 @@ BATCH_SIZE = 25
 
 @flow(name="simulate-campaign", task_runner=image_task_runner())
 def simulate_campaign(out: str, seed: int = 0, size: str = "full", effects: list[str] | None = None,
-                      small_plan: bool = False, overwrite: bool = False,
+                      plan: str = "default", overwrite: bool = False,
                       effect_modules: list[str] | None = None) -> str:
     """Write a simulated campaign to ``out``. The folder appears only when complete.
+
+    plan: a key of :data:`tasks.campaign_plan.PLANS` (default, small, context).
 
     effect_modules: user modules defining families of ``effects`` (dotted paths or ``.py`` files);
     they are imported here and their source is recorded with the truth, so that the simulator's side
@@ -39,7 +41,7 @@ def simulate_campaign(out: str, seed: int = 0, size: str = "full", effects: list
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     machine, poses, truth = plan_and_write_truth(staging, out_path.name, seed, size, list(effects or []),
-                                                 small_plan, list(effect_modules or []))
+                                                 plan, list(effect_modules or []))
     batches = np.array_split(np.arange(len(poses)), max(1, int(np.ceil(len(poses) / BATCH_SIZE))))
     logger.info(f"rendering {len(poses)} images ({size}) in {len(batches)} batches")
     futures = [render_images.submit(staging, machine, poses, truth, rows, seed) for rows in batches]

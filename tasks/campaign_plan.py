@@ -19,8 +19,14 @@ Stages:
   swept range (A ±24° within the A sweep, Y = −40 sin A ± 5 mm within ±25 mm, Z within ±5 mm).
 - ``validation``: held-out poses drawn like the ``pige`` ones from an independent stream.
 
-Time: each image takes ``seconds_per_image``; temperature follows a warm-up curve with a slow
-oscillation, so that time and temperature are not collinear.
+Passes: with ``passes`` > 1 the sweeps' repeats and the five-axis poses are split into that many
+passes taken one after the other (pass p: its share of every axis' repeats, then its share of the
+``pige`` poses), ``pause_s`` apart; the calibration views come first and the validation poses last.
+Spread over time, the passes tell an effect that follows time or temperature from the geometry the
+sweeps measure (with one pass the X sweep is minutes old when the validation poses are taken).
+
+Time: each image takes ``seconds_per_image`` (plus the pauses between passes); temperature follows a
+warm-up curve with a slow oscillation, so that time and temperature are not collinear.
 """
 
 from __future__ import annotations
@@ -53,12 +59,29 @@ class CampaignPlan:
     lateral_offset_mm: float = 5.0
     height_offset_mm: float = 1.0
     seconds_per_image: float = 3.0
+    sweep_step_scale: float = 1.0
+    passes: int = 1
+    pause_s: float = 0.0
 
     @classmethod
     def small(cls) -> CampaignPlan:
         """A reduced plan for fast tests."""
         return cls(calibration_trials=2, images_per_trial=8, sweep_positions=6, sweep_repeats=2,
                    pige_poses=24, validation_poses=8)
+
+    @classmethod
+    def context(cls) -> CampaignPlan:
+        """A small plan that exercises the context of a move (docs/effects.md): sweeps of 11
+        positions at 5 × the default step, which span the five-axis poses' range as the default's 50
+        do (X/Y ±25 mm, Z ±5 mm, A ±25°), and two passes 50 minutes apart, each with one repeat of
+        every sweep and half the five-axis poses: 206 images over an hour (the
+        simulated machine warms up with a time constant of 1 h)."""
+        return cls(calibration_trials=2, images_per_trial=8, sweep_positions=11, sweep_repeats=2,
+                   pige_poses=48, validation_poses=16, sweep_step_scale=5.0, passes=2, pause_s=3000.0)
+
+
+PLANS = {"default": CampaignPlan, "small": CampaignPlan.small, "context": CampaignPlan.context}
+"""The named plans of ``fivecal simulate --plan``."""
 
 
 def aim_camera(machine: Machine, camera: str, rotary_deg: np.ndarray, offsets_mm: np.ndarray) -> np.ndarray:
@@ -80,21 +103,22 @@ def aim_camera(machine: Machine, camera: str, rotary_deg: np.ndarray, offsets_mm
     return cmd
 
 
-def sweep_positions(machine: Machine, axis: str, positions: int) -> np.ndarray:
-    """The commanded positions (mm or deg) of ``axis``' PDGE sweep, centred on home.
+def sweep_positions(machine: Machine, axis: str, positions: int, step_scale: float = 1.0) -> np.ndarray:
+    """The commanded positions (mm or deg) of ``axis``' PDGE sweep, centred on home, in steps of
+    ``step_scale`` × SWEEP_STEP.
 
     An axis without a step in SWEEP_STEP (C) is swept over its whole stroke, both ends included
     (a rotary axis with a limited stroke is not periodic: its error at +180° need not equal the one
     at −180°), in an even number of steps so that home is among them: ``positions`` rounded up to
     an odd count."""
     if axis in SWEEP_STEP:
-        return (np.arange(positions) - positions // 2) * SWEEP_STEP[axis]
+        return (np.arange(positions) - positions // 2) * SWEEP_STEP[axis] * step_scale
     lo, hi = machine.axes[axis].stroke
     return np.linspace(lo, hi, positions + 1 - positions % 2)
 
 
 def _sweep(machine: Machine, axis: str, plan: CampaignPlan) -> pd.DataFrame:
-    positions = sweep_positions(machine, axis, plan.sweep_positions)
+    positions = sweep_positions(machine, axis, plan.sweep_positions, plan.sweep_step_scale)
     rows = []
     for r in range(plan.sweep_repeats):
         order = positions if r % 2 == 0 else positions[::-1]
@@ -150,6 +174,11 @@ def temperature_at(time_s: np.ndarray, start_c: float = 20.0) -> np.ndarray:
     return start_c + 1.2 * (1.0 - np.exp(-t / 3600.0)) + 0.25 * np.sin(2 * np.pi * t / 2400.0)
 
 
+def _five_axis_rows(stage: str, cmd: np.ndarray) -> pd.DataFrame:
+    return pd.DataFrame({"camera": "camera1", "stage": stage, "group": stage, "repeat": 0,
+                         **{a: cmd[:, i] for i, a in enumerate(AXIS_ORDER)}})
+
+
 def plan_campaign(machine: Machine, plan: CampaignPlan, seed: int) -> tuple[pd.DataFrame, dict[int, np.ndarray]]:
     """All images of a campaign in capture order.
 
@@ -168,19 +197,23 @@ def plan_campaign(machine: Machine, plan: CampaignPlan, seed: int) -> tuple[pd.D
             "group": [f"trial{t:02d}" for t in trial], "repeat": 0,
             **{a: 0.0 for a in AXIS_ORDER},
         }))
-    for axis in ("X", "Y", "Z", "A", "C"):
-        df = _sweep(machine, axis, plan)
-        df["stage"] = "pdge"
-        parts.append(df)
-    for stage, n, stream in (("pige", plan.pige_poses, 2), ("validation", plan.validation_poses, 3)):
-        cmd = five_axis_poses(machine, n, plan, np.random.default_rng([seed, stream]))
-        parts.append(pd.DataFrame({
-            "camera": "camera1", "stage": stage, "group": stage, "repeat": 0,
-            **{a: cmd[:, i] for i, a in enumerate(AXIS_ORDER)},
-        }))
+    sweeps = [_sweep(machine, axis, plan).assign(stage="pdge") for axis in ("X", "Y", "Z", "A", "C")]
+    five_axis = {stage: five_axis_poses(machine, n, plan, np.random.default_rng([seed, stream]))
+                 for stage, n, stream in (("pige", plan.pige_poses, 2), ("validation", plan.validation_poses, 3))}
+    pige_share = np.array_split(np.arange(plan.pige_poses), plan.passes)
+    pass_of = [np.zeros(len(p), dtype=int) for p in parts]
+    for p in range(plan.passes):
+        for df in sweeps:
+            mine = df[df["repeat"] * plan.passes // plan.sweep_repeats == p]
+            parts.append(mine)
+            pass_of.append(np.full(len(mine), p))
+        parts.append(_five_axis_rows("pige", five_axis["pige"][pige_share[p]]))
+        pass_of.append(np.full(len(pige_share[p]), p))
+    parts.append(_five_axis_rows("validation", five_axis["validation"]))
+    pass_of.append(np.full(plan.validation_poses, plan.passes - 1))
     df = pd.concat(parts, ignore_index=True)
     df.insert(0, "image_id", [f"img{i:05d}" for i in range(len(df))])
-    df["time_s"] = np.arange(len(df)) * plan.seconds_per_image
+    df["time_s"] = np.arange(len(df)) * plan.seconds_per_image + np.concatenate(pass_of) * plan.pause_s
     df["temperature_c"] = temperature_at(df["time_s"].to_numpy())
     n_fixture = len(fixture)
     fixture_map = dict(zip(range(n_fixture), fixture, strict=True))

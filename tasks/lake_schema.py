@@ -468,7 +468,8 @@ _TABLES = (
         _c("p_value", "float64", meaning="F-test p-value (before the Bonferroni factor over the variants tried)"),
         _c("delta_bic", "float64", meaning="BIC with the candidate minus BIC without (negative: better)"),
         _c("predicted_rms", "float64", meaning="whitened residual RMS predicted after adding it (1 = noise level)"),
-        _c("cv_rms", "float64", meaning="cross-validated whitened RMS with it (NaN: not cross-validated)"),
+        _c("cv_rms", "float64", meaning="cross-validated RMS with it, in the score's metric "
+           "(docs/diagnosis.md §6; NaN: not cross-validated)"),
         _c("explained", "float64", meaning="fraction of the residual sum of squares it explains, in the metric that "
            "carries the PDGE profiles' uncertainty (0..1)"),
         _i("step", "acceptance round the row was scored in"),

@@ -11,16 +11,17 @@ import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from tasks.campaign_plan import CampaignPlan
+from tasks.campaign_plan import PLANS
 from tasks.simulate import CampaignTruth, write_campaign_truth, write_images
 
 
 @task(cache_policy=NO_CACHE, persist_result=False)
 def plan_and_write_truth(staging: Path, campaign_id: str, seed: int, size: str, effects: list[str],
-                         small_plan: bool, effect_modules: list[str] | None = None):
-    """Plan the campaign, run the true machine, write metadata, manifest and truth files (the
-    sources of ``effect_modules`` recorded with the truth)."""
-    plan = CampaignPlan.small() if small_plan else CampaignPlan()
+                         plan_name: str, effect_modules: list[str] | None = None):
+    """Plan the campaign (``plan_name``: a key of :data:`tasks.campaign_plan.PLANS`), run the true
+    machine, write metadata, manifest and truth files (the sources of ``effect_modules`` recorded
+    with the truth)."""
+    plan = PLANS[plan_name]()
     return write_campaign_truth(staging, campaign_id, seed, size, effects, plan, effect_modules)
 
 

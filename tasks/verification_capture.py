@@ -52,11 +52,12 @@ def capture_plan(image_ids, commands: np.ndarray, camera: str, start_s: float,
 
 def _capture_plan_of(campaign_folder: Path, doc: dict, image_ids, commands: np.ndarray, camera: str,
                      repeats: int) -> pd.DataFrame:
-    """:func:`capture_plan` on the campaign's schedule: after its last image, at its image interval."""
+    """:func:`capture_plan` on the campaign's schedule: :data:`CAPTURE_GAP_IMAGES` + 1 image intervals
+    after its last image (pauses between passes included), at its image interval."""
     seconds = float(doc["plan"].get("seconds_per_image", 3.0))
-    manifest = pd.read_csv(Path(campaign_folder) / "manifest.csv")
-    return capture_plan(image_ids, commands, camera, (len(manifest) + CAPTURE_GAP_IMAGES) * seconds, seconds,
-                        repeats)
+    stamps = pd.to_datetime(pd.read_csv(Path(campaign_folder) / "manifest.csv")["timestamp"], utc=True)
+    last_s = (stamps.max() - stamps.min()).total_seconds()
+    return capture_plan(image_ids, commands, camera, last_s + (CAPTURE_GAP_IMAGES + 1) * seconds, seconds, repeats)
 
 
 def simulate_capture(campaign_folder: Path, out_folder: Path, image_ids, commands: np.ndarray,

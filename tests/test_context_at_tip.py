@@ -155,3 +155,77 @@ def test_the_ladder_carries_the_compensated_tip_error():
     assert list(ladder.columns) == list(LADDER_COLUMNS)
     assert ladder["compensated_vbm_position_um"].tolist()[1] == 4.0
     assert np.isnan(ladder["compensated_vbm_position_um"].iloc[0])
+
+
+CAMPAIGN_COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 / 206265) ** 2] * 2 + [(1.15 / 206265) ** 2])
+"""Pose noise of the size the small images give (the demo campaign's median pose standard deviations)."""
+
+
+@pytest.fixture(scope="module")
+def context_campaign(machine):
+    """The context plan (seed 10) at pose level: its plan, measurement frame and clean calibration."""
+    from tasks.campaign_plan import plan_campaign
+    from tasks.identification.measurements import planned_measurements
+    from tasks.identification.pige_identification import calibrate
+
+    plan, _ = plan_campaign(machine, CampaignPlan.context(), 10)
+    frame = planned_measurements(plan, CAMPAIGN_COV)
+    clean = _noisy_poses(machine, frame, [])
+    return plan, frame, calibrate(machine, clean).model
+
+
+def _noisy_poses(machine, frame, effects):
+    from tasks import se3
+    from tasks.identification.measurements import Measurements
+    from tasks.identification.pige_identification import synthetic_measurements
+
+    truth = load_prototype_errors()
+    truth.effects = list(effects)
+    exact = synthetic_measurements(machine, truth, frame)
+    noise = np.random.default_rng(10).normal(size=(len(exact), 6)) @ np.linalg.cholesky(CAMPAIGN_COV).T
+    return Measurements(exact.table, exact.T @ se3.exp(noise), exact.cov, exact.context)
+
+
+def _true_tip_after(machine, plan, truth, model) -> float:
+    """Mean true tip position error (µm) of the validation poses compensated with ``model`` in the
+    capture's planned context, each capture image in the context the simulator gives it."""
+    from tasks.capture_request import CAPTURE_GAP_IMAGES
+
+    val = plan[plan.stage == "validation"]
+    cmds = val[["X", "Y", "Z", "A", "C"]].to_numpy()
+    planned = planned_capture_context(cmds, plan.time_s.to_numpy(), plan.temperature_c.to_numpy())
+    comp = compensate(machine, model, cmds, context=planned).commands
+    capture = capture_plan(val.image_id.tolist(), comp, "camera1",
+                           plan.time_s.max() + (CAPTURE_GAP_IMAGES + 1) * 3.0, 3.0)
+    reached = forward(machine, comp, truth, plan_context(capture)).tool_in_workpiece()
+    return float(tip_pose_error(reached, desired_tip_poses(machine, cmds))["position_um"].mean())
+
+
+@pytest.mark.parametrize("hidden,family,size", [
+    ("thermal_drift:axis=X,driver=time,um_per_hour=20", "thermal_drift", ("um_per_hour", 20.0)),
+    ("backlash:axis=Z,amount_um=8", "backlash", ("amount_um", 8.0)),
+])
+def test_on_the_context_plan_the_diagnosis_accepts_the_hidden_effect_and_adding_it_restores_the_tip(
+        machine, context_campaign, hidden, family, size):
+    """A campaign of the context plan with a hidden time drift or backlash (pose level, image-sized
+    pose noise): the diagnosis accepts the family at its size (5 %), and the model with it, fitted and
+    ended with the joint step, compensates the true tip to within 1.2× of the clean campaign's, where
+    the model without it is off by the effect."""
+    from tasks.diagnosis import diagnose
+    from tasks.error_model import ErrorModel
+    from tasks.identification.pige_identification import calibrate
+
+    plan, frame, clean_model = context_campaign
+    effect = parse_effect(hidden)
+    meas = _noisy_poses(machine, frame, [effect])
+    base = calibrate(machine, meas)
+    d = diagnose(machine, meas, base, max_effects=1)
+    assert d.best is not None, d.sentences[0]
+    found = parse_effect(d.best)
+    assert found.family == family and found[size[0]] == pytest.approx(size[1], rel=0.05)
+    truth = load_prototype_errors()
+    truth.effects = [effect]
+    clean_tip = _true_tip_after(machine, plan, load_prototype_errors(), clean_model)
+    without = _true_tip_after(machine, plan, truth, base.model)
+    with_it = _true_tip_after(machine, plan, truth, calibrate(machine, meas, base=ErrorModel(effects=[found])).model)
+    assert with_it < 1.2 * clean_tip < without, (clean_tip, without, with_it)

@@ -132,10 +132,11 @@ def test_a_campaign_without_hidden_effect_reports_nothing_significant(machine, n
 
 
 def test_a_detectable_but_immaterial_effect_is_named_and_not_accepted(machine, frame):
-    """A 0.7 µm backlash of X is real and detectable (cross-validated p < 1e-3), but it lowers the
-    cross-validated RMS by about 3 %: below MIN_GAIN (5 %) it is not accepted, and the verdict says
-    it was detected and by how little it would help. With min_gain=0 the same data accept it."""
-    meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=0.7")])
+    """A 0.4 µm backlash of X is real and detectable (cross-validated p < 1e-3), but it lowers the
+    cross-validated RMS (in the score's metric) by about 2 %: below MIN_GAIN (5 %) it is not accepted,
+    and the verdict says it was detected and by how little it would help. With min_gain=0 the same data
+    accept it."""
+    meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=0.4")])
     result = calibrate(machine, meas)
     d = diagnose(machine, meas, result, max_effects=1)
     top = d.table.iloc[0]
@@ -201,16 +202,16 @@ def test_an_added_effect_the_poses_cannot_identify_is_warned_about_with_the_pose
 def test_an_added_effects_fitted_amplitude_carries_the_propagated_uncertainty_that_covers_the_truth(
         machine, frame):
     """calibrate --add-effect with a backlash of X, started at zero, on a campaign that hides 10 µm of
-    it: the LM's own uncertainty treats the PDGE profiles as exact and puts the fitted amplitude about
-    5 of its u from the truth; the propagation of step 4 (noise drawn through the effect fit's
-    extraction and fit) widens u about fourfold and the truth lies within 3u. Pose level: no camera
-    intrinsics, so the noise part is the whole of it."""
+    it. The fit ends with the joint step, whose covariance carries the PDGE profiles' noise: the
+    propagation of step 4 (noise drawn through the effect fit's extraction and fit) widens it by
+    less than half, and the truth lies within 3u. Pose level: no camera intrinsics, so the noise part
+    is the whole of it."""
     meas = simulate(machine, frame, [parse_effect("backlash:axis=X,amount_um=10")])
     refit = calibrate(machine, meas, base=ErrorModel(effects=[parse_effect("backlash:axis=X,amount_um=0")]))
     prop = propagate_uncertainty(machine, refit, meas)
     row = refit.pige_table(prop).set_index("name").loc["backlash:amount_um"]
     assert row.identifiable and row.uncertainty == pytest.approx(row.uncertainty_noise)
-    assert row.uncertainty > 2.0 * row.uncertainty_fit, (row.uncertainty, row.uncertainty_fit)
+    assert row.uncertainty_fit < row.uncertainty < 1.5 * row.uncertainty_fit, (row.uncertainty, row.uncertainty_fit)
     assert abs(row.value - 10.0) < 3.0 * row.uncertainty, (row.value, row.uncertainty)
     assert row.note == f"{row.value / row.uncertainty:.1f}u from zero"
     assert np.isfinite(prop.noise).all() and len(prop.noise_models) == NOISE_DRAWS

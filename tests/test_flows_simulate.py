@@ -12,7 +12,7 @@ def test_simulate_flow_writes_a_complete_campaign_atomically(prefect_harness, tm
     from flows.simulate import simulate_campaign
 
     out = tmp_path / "c1"
-    path = simulate_campaign(str(out), seed=3, size="small", effects=["scale:axis=X,ppm=30"], small_plan=True)
+    path = simulate_campaign(str(out), seed=3, size="small", effects=["scale:axis=X,ppm=30"], plan="small")
     assert path == str(out.resolve())
     manifest = pd.read_csv(out / "manifest.csv")
     p = CampaignPlan.small()
@@ -29,4 +29,4 @@ def test_simulate_flow_writes_a_complete_campaign_atomically(prefect_harness, tm
     assert len(in_view) == expected and in_view.loc[calibration].all()  # plate a may leave the field elsewhere
 
     with pytest.raises(FileExistsError, match="already exists"):
-        simulate_campaign(str(out), seed=3, size="small", small_plan=True)
+        simulate_campaign(str(out), seed=3, size="small", plan="small")

@@ -82,6 +82,27 @@ def test_five_axis_poses_stay_inside_the_swept_ranges(default_plan):
         assert five_axis[axis].between(swept.min(), swept.max()).all(), axis
 
 
+def test_the_context_plan_takes_both_directions_in_each_of_two_passes_an_hour_apart(machine):
+    """CampaignPlan.context(): each pass holds one repeat of every sweep (forward, then backward) and
+    half the five-axis poses; the second pass starts 50 minutes after the first ends, and the
+    coarse sweeps still span the five-axis poses."""
+    plan, _ = plan_campaign(machine, CampaignPlan.context(), seed=3)
+    assert len(plan) == 206
+    gap = np.diff(plan["time_s"].to_numpy())
+    assert np.sort(gap)[-1] == pytest.approx(3000.0 + 3.0) and np.sort(gap)[-2] == pytest.approx(3.0)
+    second = plan["time_s"].to_numpy() > plan["time_s"].to_numpy()[np.argmax(gap)]
+    for part, repeat in ((~second, 0), (second, 1)):
+        sweeps = plan[part & (plan.stage == "pdge")]
+        assert set(sweeps.repeat) == {repeat} and set(sweeps.group) == set("XYZAC")
+        assert (plan[part].stage == "pige").sum() == 24
+    assert set(plan[second].stage) >= {"validation"} and not (plan[~second].stage == "validation").any()
+    sweeps = plan[plan.stage == "pdge"]
+    five_axis = plan[plan.stage.isin(["pige", "validation"])]
+    for axis in "XYZA":
+        swept = sweeps[sweeps.group == axis][axis]
+        assert five_axis[axis].between(swept.min(), swept.max()).all(), axis
+
+
 def test_same_seed_gives_byte_identical_images(machine):
     plan, fixture = plan_campaign(machine, CampaignPlan.small(), seed=5)
     errors = load_prototype_errors()

@@ -2,7 +2,8 @@
 direction, time or a user's own variable"): per campaign, each model-ladder step with its
 cross-validated RMS and the tip error after compensating with that step's model (VBM and truth), the
 true tip error before compensation and how far the hidden effect moves it there (against the clean
-campaign of the same seed, pose by pose), and the ratio of the last step to the clean campaign of the same
+campaign of the same seed, pose by pose), how far the last compensation's true tip sits from the clean
+campaign's, and the ratio of the last step to the clean campaign of the same
 seed.
 
     python docs/examples/context_summary.py RESULTS_ROOT CAMPAIGN_ID...   # clean-s<seed> are the references
@@ -16,16 +17,17 @@ from tasks.model_ladder import read_ladder
 from tasks.results_lake import read_table
 
 
-def _before_truth(root: str, cid: str) -> pd.DataFrame:
+def _truth(root: str, cid: str, phase: str) -> pd.DataFrame:
     v = read_table("verification", root, cid)
-    return v[(v["phase"] == "before") & (v["source"] == "truth")].set_index("image_id")[["dx_um", "dy_um", "dz_um"]]
+    return v[(v["phase"] == phase) & (v["source"] == "truth")].set_index("image_id")[["dx_um", "dy_um", "dz_um"]]
 
 
-def _before_shift(root: str, cid: str) -> float:
-    """Mean over the validation poses of how far the hidden effect moves the true tip before
-    compensation: ‖Δ(dx, dy, dz)‖ against the clean campaign of the same seed (same poses), µm."""
+def _shift(root: str, cid: str, phase: str) -> float:
+    """Mean over the validation poses of how far the true tip sits from the clean campaign's of the
+    same seed (same poses), ‖Δ(dx, dy, dz)‖ in µm: before compensation, what the hidden effect moves it;
+    after, what the effect and what the fit made of it leave (the campaign's last compensation)."""
     clean = "clean-" + cid.rsplit("-", 1)[-1]
-    a, b = _before_truth(root, cid), _before_truth(root, clean)
+    a, b = _truth(root, cid, phase), _truth(root, clean, phase)
     return float(((a - b.loc[a.index]) ** 2).sum(axis=1).pow(0.5).mean())
 
 
@@ -43,7 +45,10 @@ def summary(root: str, campaign_ids: list[str]) -> pd.DataFrame:
                          "after_vbm_arcsec": r.compensated_vbm_orientation_arcsec,
                          "after_truth_arcsec": r.compensated_truth_orientation_arcsec})
     out = pd.DataFrame(rows)
-    out["before_truth_shift_um"] = out["campaign"].map({cid: _before_shift(root, cid) for cid in campaign_ids})
+    out["before_truth_shift_um"] = out["campaign"].map({cid: _shift(root, cid, "before") for cid in campaign_ids})
+    last = out.groupby("campaign")["step"].transform("max") == out["step"]
+    out.loc[last, "after_truth_shift_um"] = out.loc[last, "campaign"].map(
+        {cid: _shift(root, cid, "after") for cid in campaign_ids})
     seed = out["campaign"].str.extract(r"-(s\d+)$")[0]
     clean = out[out["campaign"].str.startswith("clean-")].groupby(seed).last()
     for q in ("after_vbm_um", "after_truth_um"):

@@ -16,13 +16,13 @@ out (eq. 2, :mod:`tasks.diagnosis.score`). Candidates are ranked by ΔBIC. The l
 - its F-test p-value, multiplied by the number of independent variants tried (candidates and
   scanned frequencies: a Bonferroni bound), is below ``alpha``;
 - ΔBIC < −10;
-- the cross-validated refit with it (eq. 3, :mod:`tasks.diagnosis.crossval`) beats the one without
-  significantly (paired test, p < ``alpha``) and by a material amount: the cross-validated RMS falls
-  by at least ``min_gain`` (5 % by default). With ten thousand residuals a p-value alone flags any
-  trace of structure — on an image campaign with no hidden effect the camera self-calibration's own
-  bias lets ``lens_distortion`` lower the CV RMS by 2.0 % at p = 8e-9 — and a term that changes the
-  prediction by that little is not worth a model parameter. Such candidates are named, with their
-  gain, as detectable but not material;
+- the cross-validated refit with it (eq. 3, :mod:`tasks.diagnosis.crossval`, in the score's metric)
+  beats the one without significantly (paired test, p < ``alpha``) and by a material amount: the
+  cross-validated RMS falls by at least ``min_gain`` (5 % by default). With ten thousand residuals a
+  p-value alone flags any trace of structure — on an image campaign with no hidden effect the camera
+  self-calibration's own bias let ``lens_distortion`` lower the whitened CV RMS by 2.0 % at p = 8e-9 —
+  and a term that changes the prediction by that little is not worth a model parameter. Such
+  candidates are named, with their gain, as detectable but not material;
 - no other significant candidate explains the residual as well: if adding the leader to a model that
   holds candidate B does not improve the fit significantly (conditional F-test, p > ``alpha``), this
   campaign cannot tell them apart; they are reported as one group and none is accepted.
@@ -53,7 +53,7 @@ from tasks.identification.measurements import Measurements
 from tasks.identification.pige_identification import IDENTIFICATION_CAMERA, CalibrationResult
 from tasks.machine import Machine
 
-DIAGNOSIS_CODE_VERSION = "diagnosis-3"  # bump when diagnose() would return something else for the same inputs
+DIAGNOSIS_CODE_VERSION = "diagnosis-4"  # bump when diagnose() would return something else for the same inputs
 ALPHA = 1e-3
 MIN_GAIN = 0.05  # smallest relative fall of the cross-validated RMS that makes a candidate worth accepting
 MIN_DELTA_BIC = -10.0
@@ -68,7 +68,7 @@ class Diagnosis:
     """table: the ``diagnosis`` table (one row per candidate; accepted effects first, in the order
     accepted, then the rest by ΔBIC against the final residual). sentences: the verdict.
     best: spec of the first accepted effect (fitted amplitudes), or None. accepted: specs accepted in
-    order. cv_rms_before: cross-validated RMS of the model as calibrated (whitened). notes: families
+    order. cv_rms_before: cross-validated RMS of the model as calibrated (the score's metric). notes: families
     that could not take part."""
 
     table: pd.DataFrame
@@ -155,7 +155,10 @@ def _diagnose(machine, measurements, result, candidates, max_effects, alpha, fol
     lin = linearise(machine, measurements, result)
     scorer = Scorer(lin.residual, lin.own, gls_transform(*profile_noise(lin)))
     test_folds = fold_rows(lin, folds)
-    cv_before = rms(held_out_errors(lin.residual, lin.own, test_folds))
+    # held-out errors in the score's metric, which weighs down the PDGE profiles' noise
+    T = scorer.transform
+    r_cv = T(lin.residual)
+    cv_before = rms(held_out_errors(r_cv, T(lin.own), test_folds))
     camera = IDENTIFICATION_CAMERA
     accepted: list[tuple[int, _Scored]] = []
     sentences: list[str] = []
@@ -172,12 +175,12 @@ def _diagnose(machine, measurements, result, candidates, max_effects, alpha, fol
         # identifiable candidates first: an absorbed one "explains" only by a huge amplitude on the
         # sliver of its signature that the model cannot reproduce
         final.sort(key=lambda s: (s.absorbed or s.unseen, s.stats["delta_bic"]))
-        X_have = np.hstack([lin.own] + [a.G for _, a in accepted])
-        e_now = held_out_errors(lin.residual, X_have, test_folds)
+        X_have = T(np.hstack([lin.own] + [a.G for _, a in accepted]))
+        e_now = held_out_errors(r_cv, X_have, test_folds)
         cv_now = rms(e_now)
         for i, s in enumerate(final):
             if s.k > 0 and (i < CONFIRM or s.statistically_significant(alpha)):
-                e_with = held_out_errors(lin.residual, np.hstack([X_have, s.G]), test_folds)
+                e_with = held_out_errors(r_cv, np.hstack([X_have, T(s.G)]), test_folds)
                 s.cv, s.cv_p = rms(e_with), cv_improvement_p(e_now, e_with)
                 s.cv_gain = 1.0 - s.cv / cv_now if cv_now > 0 else 0.0
         if step == max_effects or not final or not final[0].significant(alpha, min_gain):

@@ -242,7 +242,9 @@ def calibrate_with_effects(machine: Machine, measurements: Measurements, base: E
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
                            rounds: int = ROUNDS) -> CalibrationResult:
     """The calibration of :func:`tasks.identification.pige_identification.calibrate` with the parameters
-    of ``base.effects`` fitted too (their values in ``base`` are the starting point). The pige table
+    of ``base.effects`` fitted too (their values in ``base`` are the starting point), by the alternation
+    and then the joint step (the alternation's solution alone when a fitted effect acts on a camera's
+    imaging; it is kept in ``alternation``, which the diagnosis linearises about). The pige table
     lists them with kind "effect"; ``notes`` says which the poses cannot identify and what would.
     Runs with one BLAS thread (many small products; two contending threads are far slower)."""
     with threadpool_limits(limits=1):
@@ -273,7 +275,11 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
     pdge = extract_pdges(machine, ext, imaging_corrected(machine, ext, measurements), truth)  # the table
     alternation = CalibrationResult(pdge, fit, extraction_model=ext)
     held = not fit.fit.identifiable[n_const:].any()
-    if held:  # every effect parameter stays at its start: the calibration of that model, joint step included
+    # the calibration of that model ends with the joint step, as calibrate() does: without it the
+    # compensated tip carries the alternation's profile errors (docs/effects.md). The joint step models
+    # the poses as measured, so a fitted effect that changes a camera's imaging keeps the alternation's.
+    joint = held or not any(_acts_on_cameras(e) for e in effects)
+    if joint:
         from tasks.identification.joint_fit import joint_refine
 
         skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
@@ -293,12 +299,16 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
         clean = synthetic_measurements(machine, truth, measurements)
         if truth.effects:
             truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
-        elif held:  # as calibrate() expresses the truth for a fit that ends with the joint step
+        elif joint:  # as calibrate() expresses the truth for a fit that ends with the joint step
             truth_fit = _joint_truth(machine, clean, const_specs, pdge)
-        else:  # the alternation, as this fit's (the joint step is not part of a fit with effects)
+        else:  # the alternation, as this fit's
             clean_poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
             _, truth_fit, _ = alternate(machine, ErrorModel(), clean, clean_poses, const_specs)
-    if held:
+    if joint:
         return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes, joint=True,
                                  alternation=alternation)
     return CalibrationResult(pdge, fit, truth_fit, truth, extraction_model=ext, notes=notes)
+
+
+def _acts_on_cameras(effect: Effect) -> bool:
+    return type(effect).camera_changes is not Effect.camera_changes

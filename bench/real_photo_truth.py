@@ -92,9 +92,11 @@ def intensity_centroids(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray
 def rim_ellipse_centres(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray, n_rays: int = 120,
                         iterations: int = 2) -> np.ndarray:
     """(K, 2) px: the centre of the ellipse through each dot's rim, the rim on each of ``n_rays``
-    rays being where the profile crosses halfway between that ray's own dot level (0.5–0.7 radii)
-    and paper level (1.35–1.65 radii), linearly interpolated (bilinear samples every 0.1 px); what
-    fitting an ellipse by hand to the visible edge measures, unmoved by shading inside the dot.
+    rays being where the profile crosses halfway between that ray's own dot level and paper level,
+    each a straight line fitted to the ray's samples at 0.3–0.7 and 1.35–1.65 radii and taken at
+    the same distance (shading across the dot or the paper does not move the crossing), linearly
+    interpolated (bilinear samples every 0.1 px); what fitting an ellipse by hand to the visible
+    edge measures.
     ``cv2.fitEllipse`` on the crossings, twice with rays more than 3 median deviations off dropped,
     re-centred ``iterations`` times."""
     img = grey.astype(np.float32)
@@ -108,17 +110,18 @@ def rim_ellipse_centres(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray
             pts = out[k][None, None, :] + t[None, :, None] * dirs[:, None, :]
             prof = cv2.remap(img, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32), cv2.INTER_LINEAR,
                              borderMode=cv2.BORDER_REPLICATE)
-            inner = np.median(prof[:, (t >= 0.5 * r) & (t <= 0.7 * r)], axis=1)
-            outer = np.median(prof[:, (t >= 1.35 * r) & (t <= 1.65 * r)], axis=1)
-            half = 0.5 * (inner + outer)
+            inner = _line_fit(t, prof, (t >= 0.3 * r) & (t <= 0.7 * r))  # (a, m) per ray: shading inside
+            outer = _line_fit(t, prof, (t >= 1.35 * r) & (t <= 1.65 * r))
+            half_t = 0.5 * (inner[0][:, None] + inner[1][:, None] * t + outer[0][:, None] + outer[1][:, None] * t)
             band = (t >= 0.6 * r) & (t <= 1.4 * r)
-            tb, pb = t[band], prof[:, band]
-            above = pb >= half[:, None]  # paper side of the level (dark dots)
+            tb, pb = t[band], prof[:, band] - half_t[:, band]
+            above = pb >= 0  # paper side of the local half level (dark dots)
             cross = np.argmax(above[:, :-1] != above[:, 1:], axis=1)  # first crossing outwards
-            has = (above[:, :-1] != above[:, 1:]).any(axis=1) & (outer - inner > 5)
+            contrast = (outer[0] + outer[1] * r) - (inner[0] + inner[1] * r)
+            has = (above[:, :-1] != above[:, 1:]).any(axis=1) & (contrast > 5)
             i0 = cross
             p0, p1 = pb[np.arange(n_rays), i0], pb[np.arange(n_rays), i0 + 1]
-            frac = np.clip((half - p0) / np.where(p1 != p0, p1 - p0, 1), 0, 1)
+            frac = np.clip(-p0 / np.where(p1 != p0, p1 - p0, 1), 0, 1)
             rim_t = tb[i0] + frac * (tb[1] - tb[0])
             rim = out[k] + rim_t[:, None] * dirs
             use = has.copy()
@@ -135,6 +138,14 @@ def rim_ellipse_centres(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray
                 use = has & (dev < 3 * max(np.median(dev[use]) * 1.4826, 0.05))
             out[k] = [cu, cv_]
     return out
+
+
+def _line_fit(t: np.ndarray, prof: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(intercept, slope) (R,) of a straight line through each profile's samples ``sel`` of t."""
+    tt, pp = t[sel], prof[:, sel]
+    tm, pm = tt.mean(), pp.mean(axis=1)
+    slope = ((tt - tm) * (pp - pm[:, None])).sum(axis=1) / ((tt - tm) ** 2).sum()
+    return pm - slope * tm, slope
 
 
 def find_dots(grey: np.ndarray, ratio_guess: float, rows: int, cols: int, margin: int = 3):

@@ -62,8 +62,11 @@ class SubpixelParams:
     max_level: int = 4  # largest area-averaging factor for blurry rims …
     sigma_per_level: float = 1.25  # … level = ⌊median σ / sigma_per_level⌋
     erf_iterations: int = 2
-    inner_slope: bool = True  # a dot whose contrast changes by more than min_shading from its centre to
-    min_shading: float = 0.1  # its rim on one side is fitted with a sloped inside (step_fit, odd_slope)
+    # inner_slope: a dot whose contrast changes by more than min_shading from its centre to its rim on
+    # one side is refitted with a sloped inside (step_fit, shading); off by default: on real photographs
+    # it did not agree better with a hand-fit-like rim truth (docs/detector-comparison.md)
+    inner_slope: bool = False
+    min_shading: float = 0.1
     shared_blur_iterations: int = 1  # then (t_e, a, b) refits with σ from the per-dot blur model
     max_refine: int = 3  # pass-2 repetitions at most (each re-centres the rays) …
     refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this

@@ -17,9 +17,10 @@ over the repeats (median wall time kept). Scoring:
 * OpenCV and the baselines order the grid their own way: found when each true dot has exactly
   one detected centre within a quarter of the dot size (labels not compared), else wrong.
 
-The centre error of a found grid is the distance to the truth (rim ellipse); the median distance
-to the intensity centroids is printed beside it (where the two differ, the dots' images are not
-uniformly dark and a centroid-type detector is pulled towards their darker side). Per detector:
+The centre error of a found grid is the distance to the truth (rim ellipse with flat levels); the
+median distances to the two other estimators of real_photo_truth.py (intensity centroid, rim
+ellipse with sloped levels) are printed beside it: where they differ, the dots' images are not
+uniformly dark and their centre is defined no better than that. Per detector:
 found / refused / wrong, the median over the photographs of the per-photograph median error, the
 worst dot, and the median time.
 """
@@ -70,7 +71,8 @@ def main() -> None:
         t = json.loads(jpath.read_text())
         image = cv2.imread(str(jpath.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
         plate = DotPlate(t["rows"], t["cols"], t["pitch_over_diameter"], 1.0)
-        truth, iso, dot_px = np.array(t["truth_px"]), np.array(t["centroid_px"]), t["dot_diameter_px"]
+        truth, dot_px = np.array(t["truth_px"]), t["dot_diameter_px"]
+        others = {"centroid": np.array(t["centroid_px"]), "sloped": np.array(t["rim_sloped_px"])}
         if not warm:
             for d in DETECTORS:
                 run(d, image, plate)
@@ -84,31 +86,36 @@ def main() -> None:
         if args.debug:
             args.debug.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(args.debug / f"{jpath.stem}.png"), draw_detection(image, detect_grid(image, plate), plate))
-        row = {"name": jpath.stem, "truth_spread": float(np.median(np.linalg.norm(truth - iso, axis=1)))}
-        line = f"{jpath.stem:44s} d {dot_px:5.1f}px truth±{row['truth_spread']:.2f}"
+        row = {"name": jpath.stem, "spread": {k: float(np.median(np.linalg.norm(truth - v, axis=1)))
+                                              for k, v in others.items()}}
+        line = f"{jpath.stem:44s} d {dot_px:5.1f}px truth-centroid {row['spread']['centroid']:.2f}"
         for d in DETECTORS:
             verdict, e = score(d, out[d], plate, truth, dot_px)
-            _, e_iso = score(d, out[d], plate, iso, dot_px)
-            row[d] = (verdict, e, e_iso, 1e3 * statistics.median(times[d]))
+            e_other = {k: score(d, out[d], plate, v, dot_px)[1] for k, v in others.items()}
+            row[d] = (verdict, e, e_other, 1e3 * statistics.median(times[d]))
             line += f" | {d} {verdict[:5]}" + (f" {np.median(e):.2f}" if e is not None else "")
         rows.append(row)
         print(line, flush=True)
     if not rows:
         print(f"no NAME.json in {args.folder}")
         return
-    print(f"\n{len(rows)} photographs; truth (rim ellipse) vs intensity centroid, median of the "
-          f"per-photo medians {statistics.median(r['truth_spread'] for r in rows):.3f} px")
+    spread = {k: statistics.median(r["spread"][k] for r in rows) for k in ("centroid", "sloped")}
+    print(f"\n{len(rows)} photographs; median over them of the per-photo median distance from the truth (rim "
+          f"ellipse, flat levels) to the intensity centroids {spread['centroid']:.3f} px, to the rim ellipses "
+          f"with sloped levels {spread['sloped']:.3f} px")
     print(f"{'detector':15s} {'found':>6s} {'refused':>8s} {'wrong':>6s} {'median err px':>14s} "
-          f"{'(vs centroid)':>17s} {'worst dot px':>13s} {'median ms':>10s}")
+          f"{'vs centroid':>12s} {'vs sloped rim':>14s} {'worst dot px':>13s} {'median ms':>10s}")
     for d in DETECTORS:
         n = {v: sum(r[d][0] == v for r in rows) for v in ("found", "refused", "wrong")}
         errs = [r[d][1] for r in rows if r[d][1] is not None]
-        errs_iso = [r[d][2] for r in rows if r[d][2] is not None]
-        med = statistics.median(float(np.median(e)) for e in errs) if errs else float("nan")
-        med_iso = statistics.median(float(np.median(e)) for e in errs_iso) if errs_iso else float("nan")
+
+        def med(es):
+            return statistics.median(float(np.median(e)) for e in es) if es else float("nan")
+
+        other = {k: med([r[d][2][k] for r in rows if r[d][2][k] is not None]) for k in ("centroid", "sloped")}
         worst = max(float(e.max()) for e in errs) if errs else float("nan")
-        print(f"{d:15s} {n['found']:6d} {n['refused']:8d} {n['wrong']:6d} {med:14.3f} {med_iso:17.3f} {worst:13.3f} "
-              f"{statistics.median(r[d][3] for r in rows):10.1f}")
+        print(f"{d:15s} {n['found']:6d} {n['refused']:8d} {n['wrong']:6d} {med(errs):14.3f} {other['centroid']:12.3f} "
+              f"{other['sloped']:14.3f} {worst:13.3f} {statistics.median(r[d][3] for r in rows):10.1f}")
     for ref in ("cv2+clustering", "cv2"):
         both = [r for r in rows if r["rrht"][1] is not None and r[ref][1] is not None]
         if both:

@@ -89,16 +89,16 @@ def intensity_centroids(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray
     return out
 
 
-def rim_ellipse_centres(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray, n_rays: int = 120,
-                        iterations: int = 2) -> np.ndarray:
+def rim_ellipse_centres(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray, sloped: bool = False,
+                        n_rays: int = 120, iterations: int = 2) -> np.ndarray:
     """(K, 2) px: the centre of the ellipse through each dot's rim, the rim on each of ``n_rays``
-    rays being where the profile crosses halfway between that ray's own dot level and paper level,
-    each a straight line fitted to the ray's samples at 0.3–0.7 and 1.35–1.65 radii and taken at
-    the same distance (shading across the dot or the paper does not move the crossing), linearly
-    interpolated (bilinear samples every 0.1 px); what fitting an ellipse by hand to the visible
-    edge measures.
-    ``cv2.fitEllipse`` on the crossings, twice with rays more than 3 median deviations off dropped,
-    re-centred ``iterations`` times."""
+    rays being where the profile crosses halfway between that ray's own dot level and paper level
+    (medians of the ray's samples at 0.5–0.7 and 1.35–1.65 radii; ``sloped``: straight lines
+    fitted to its samples at 0.3–0.7 and 1.35–1.65 radii, taken at the same distance, so that a
+    linear shading across the dot does not move the crossing), linearly interpolated (bilinear
+    samples every 0.1 px); ``cv2.fitEllipse`` on the crossings, twice with rays more than 3 median
+    deviations off dropped, re-centred ``iterations`` times. The flat levels are what fitting an
+    ellipse by hand to the visible edge measures."""
     img = grey.astype(np.float32)
     out = centres.astype(float).copy()
     ang = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
@@ -110,8 +110,8 @@ def rim_ellipse_centres(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray
             pts = out[k][None, None, :] + t[None, :, None] * dirs[:, None, :]
             prof = cv2.remap(img, pts[..., 0].astype(np.float32), pts[..., 1].astype(np.float32), cv2.INTER_LINEAR,
                              borderMode=cv2.BORDER_REPLICATE)
-            inner = _line_fit(t, prof, (t >= 0.3 * r) & (t <= 0.7 * r))  # (a, m) per ray: shading inside
-            outer = _line_fit(t, prof, (t >= 1.35 * r) & (t <= 1.65 * r))
+            inner = _line_fit(t, prof, (t >= (0.3 if sloped else 0.5) * r) & (t <= 0.7 * r), sloped)
+            outer = _line_fit(t, prof, (t >= 1.35 * r) & (t <= 1.65 * r), sloped)
             half_t = 0.5 * (inner[0][:, None] + inner[1][:, None] * t + outer[0][:, None] + outer[1][:, None] * t)
             band = (t >= 0.6 * r) & (t <= 1.4 * r)
             tb, pb = t[band], prof[:, band] - half_t[:, band]
@@ -140,9 +140,12 @@ def rim_ellipse_centres(grey: np.ndarray, centres: np.ndarray, radii: np.ndarray
     return out
 
 
-def _line_fit(t: np.ndarray, prof: np.ndarray, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(intercept, slope) (R,) of a straight line through each profile's samples ``sel`` of t."""
+def _line_fit(t: np.ndarray, prof: np.ndarray, sel: np.ndarray, sloped: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(intercept, slope) (R,) of a straight line through each profile's samples ``sel`` of t, or
+    (median, 0) unless ``sloped``."""
     tt, pp = t[sel], prof[:, sel]
+    if not sloped:
+        return np.median(pp, axis=1), np.zeros(len(pp))
     tm, pm = tt.mean(), pp.mean(axis=1)
     slope = ((tt - tm) * (pp - pm[:, None])).sum(axis=1) / ((tt - tm) ** 2).sum()
     return pm - slope * tm, slope
@@ -272,6 +275,7 @@ def main() -> None:
             continue
         c, g, r, block, (centres_r, axes_r, theta_r), region_idx = found
         rim = rim_ellipse_centres(grey, c[block], r[block])
+        rim_sloped = rim_ellipse_centres(grey, c[block], r[block], sloped=True)
         spread = np.linalg.norm(c[block] - rim, axis=1)
         _, predicted, map_rms, n_others = predict_hole(g, c, block, radius)
         to_map = np.linalg.norm(c[block] - predicted, axis=1)  # labelling check: the lattice holds
@@ -305,6 +309,7 @@ def main() -> None:
             truth = {"source": path, "variant": variant, "rows": args.rows, "cols": args.cols,
                      "pitch_over_diameter": args.ratio, "dot_diameter_px": float(np.median(2 * r[block])) * sx,
                      "truth_px": scaled(rim).tolist(), "centroid_px": scaled(c[block]).tolist(),
+                     "rim_sloped_px": scaled(rim_sloped).tolist(),
                      "block_lattice": g[block].tolist(),
                      "centroid_vs_truth_px": (spread * sx).tolist(),
                      "neighbour_map_rms_px": map_rms * sx, "neighbour_map_n_dots": n_others,

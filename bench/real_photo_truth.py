@@ -12,7 +12,10 @@ here). Written to DIR per photograph and scale:
   (``cv2.inpaint``). The dots kept are the photograph's own pixels. With ``--variants`` the image
   is also resized (``cv2.INTER_AREA`` down, a more distant view of the same dots; ``INTER_CUBIC``
   up, larger dots with the blur scaled alike) to a whole number of pixels and cropped around the
-  block (a small frame); the truth is mapped alike, pixel centres at integers.
+  block (a small frame), or resampled as through a fisheye lens (:func:`fisheye_view`: the block
+  off the axis, dots squeezed by the barrel distortion); the truth is mapped alike, pixel
+  centres at integers (through the fisheye the mapped rim centre, not the centre of an ellipse
+  fitted to the distorted rim).
 * ``NAME[_xVARIANT].json``: the truth of the block, row-major like
   :meth:`tasks.plate.DotPlate.dot_centres_mm` for ``DotPlate(rows, cols, ratio, 1)`` along the
   photograph's lattice, px, origin at the centre of the top-left pixel.
@@ -253,6 +256,42 @@ def pick_block(lattice: np.ndarray, centroids: np.ndarray, shape, rows: int, col
     return None
 
 
+FISHEYE = (170.0, -0.35, 0.1)
+"""The fisheye view (:func:`fisheye_view`): focal length (px), k1, k2 (OpenCV radial model, as
+the fisheye stress case)."""
+
+
+def fisheye_view(img: np.ndarray, block_centre: np.ndarray, half_extent: np.ndarray, w: int,
+                 h: int) -> tuple[np.ndarray, object]:
+    """A W × H frame of ``img`` through strong barrel distortion (:data:`FISHEYE`), the block
+    (centre, half extent (2,) px with its dots) moved off the optical axis as far as it stays
+    whole in the frame (at most 30 % of the frame): (frame (h, w) uint8, map of ``img`` px
+    (N, 2) → frame px). The frame is resampled bilinearly from ``img`` at the undistorted
+    position of each of its pixels."""
+    f, k1, k2 = FISHEYE
+    cx, cy = (w - 1) / 2, (h - 1) / 2
+    offset = np.clip(np.array([w / 2, h / 2]) - half_extent - 6.0, 0.0, 0.3 * np.array([w, h]))
+    axis = block_centre - offset  # img px on the optical axis
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    xd, yd = (uu - cx) / f, (vv - cy) / f
+    rd = np.hypot(xd, yd)
+    ru = rd.copy()
+    for _ in range(30):  # invert r_d = r_u (1 + k1 r_u² + k2 r_u⁴)
+        ru = rd / (1 + k1 * ru ** 2 + k2 * ru ** 4)
+    scale = np.where(rd > 0, ru / np.maximum(rd, 1e-12), 1.0)
+    map_u = (axis[0] + f * xd * scale).astype(np.float32)
+    map_v = (axis[1] + f * yd * scale).astype(np.float32)
+    frame = cv2.remap(img, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def to_frame(uv: np.ndarray) -> np.ndarray:
+        x, y = (uv[:, 0] - axis[0]) / f, (uv[:, 1] - axis[1]) / f
+        r2 = x * x + y * y
+        g = 1 + k1 * r2 + k2 * r2 * r2
+        return np.column_stack([cx + f * x * g, cy + f * y * g])
+
+    return frame, to_frame
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("photos", nargs="+", help="NAME=PATH: one photograph")
@@ -260,9 +299,9 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=4)
     ap.add_argument("--cols", type=int, default=3)
     ap.add_argument("--ratio", type=float, default=2.5, help="pitch / diameter of the photographed plate")
-    ap.add_argument("--variants", default="1", help="comma-separated SCALE[:WxH]: the cut-down image resized by "
-                    "SCALE (INTER_AREA down, INTER_CUBIC up), then cropped to W x H px around the block; "
-                    "e.g. 1,0.5,0.3333,1:360x320,4.5:3024x4032")
+    ap.add_argument("--variants", default="1", help="comma-separated SCALE[:WxH[:fisheye]]: the cut-down image "
+                    "resized by SCALE (INTER_AREA down, INTER_CUBIC up), then cropped to W x H px around the "
+                    "block, or seen through a fisheye lens (fisheye_view); e.g. 1,0.5,1:360x320,1:320x360:fisheye")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     radius = 0.5 / args.ratio  # plate units: pitch 1
@@ -287,22 +326,29 @@ def main() -> None:
                 cv2.ellipse(mask, ((float(u), float(v)), (2.6 * a + 6, 2.6 * b + 6), float(np.degrees(th))), 255, -1)
         cut = cv2.inpaint(grey, mask, 5, cv2.INPAINT_TELEA)
         for variant in args.variants.split(","):
-            scale_txt, _, crop_txt = variant.partition(":")
+            scale_txt, _, rest = variant.partition(":")
+            crop_txt, _, lens = rest.partition(":")
             scale = float(scale_txt)
             size = (round(cut.shape[1] * scale), round(cut.shape[0] * scale))
             img = cut if scale == 1 else cv2.resize(cut, size, interpolation=cv2.INTER_AREA if scale < 1
                                                     else cv2.INTER_CUBIC)
             sx, sy = img.shape[1] / cut.shape[1], img.shape[0] / cut.shape[0]
-            origin = np.zeros(2)
-            if crop_txt:  # a window of W x H px centred on the block (inside the image)
+            mid = np.array([(c[block, 0].mean() + 0.5) * sx - 0.5, (c[block, 1].mean() + 0.5) * sy - 0.5])
+            to_out = None
+            if crop_txt:
                 w, h = (int(x) for x in crop_txt.split("x"))
-                mid = np.array([(c[block, 0].mean() + 0.5) * sx, (c[block, 1].mean() + 0.5) * sy])
-                origin = np.clip(np.round(mid - [w / 2, h / 2]), 0, [img.shape[1] - w, img.shape[0] - h])
-                x0, y0 = int(origin[0]), int(origin[1])
-                img = img[y0:y0 + h, x0:x0 + w]
+                if lens == "fisheye":
+                    ext = (np.ptp(c[block], axis=0) / 2 + r[block].max()) * np.array([sx, sy])
+                    img, to_out = fisheye_view(img, mid, ext, w, h)
+                else:  # a window of W x H px centred on the block (inside the image)
+                    origin = np.clip(np.round(mid - [w / 2, h / 2]), 0, [img.shape[1] - w, img.shape[0] - h])
+                    x0, y0 = int(origin[0]), int(origin[1])
+                    img = img[y0:y0 + h, x0:x0 + w]
+                    to_out = lambda uv, o=origin: uv - o  # noqa: E731
 
-            def scaled(uv, sx=sx, sy=sy, origin=origin):
-                return np.column_stack([(uv[:, 0] + 0.5) * sx - 0.5, (uv[:, 1] + 0.5) * sy - 0.5]) - origin
+            def scaled(uv, sx=sx, sy=sy, to_out=to_out):
+                q = np.column_stack([(uv[:, 0] + 0.5) * sx - 0.5, (uv[:, 1] + 0.5) * sy - 0.5])
+                return q if to_out is None else to_out(q)
 
             stem = name + ("" if variant == "1" else "_x" + variant.replace(":", "_"))
             cv2.imwrite(str(args.out / f"{stem}.png"), img)

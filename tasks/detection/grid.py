@@ -108,7 +108,7 @@ def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: f
     cand = cand[np.argsort(np.linalg.norm(points[cand] - centroid, axis=1))][:max_seeds]
     best = none
     for seed in cand:
-        mn, assigned = _complete(points, tree, *_grow(points, tree, int(seed), steps, has, sizes), sizes)
+        mn, assigned = _grow(points, tree, int(seed), steps, has, sizes)
         if assigned.sum() > best[1].sum():
             best = (mn, assigned)
         if assigned.sum() >= min_points:
@@ -159,55 +159,6 @@ def _grow(points, tree, seed, steps, has, sizes):
         b[jj, kk ^ 1] = -taken
         frontier = jj
     return mn, assigned
-
-
-_UNIT = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]])
-
-
-def _complete(points, tree, mn, assigned, sizes, rounds: int = 3):
-    """Grow the lattice further where breadth-first growth stopped short: each lattice point
-    without a neighbour in some direction predicts it with the step of the nearest lattice
-    relative it has in that direction (itself backwards, or a sibling along the other axis),
-    local steps that growth, carrying steps from its parent, did not have under strong
-    distortion. The same 30 % and size tests as :func:`_grow`; a few rounds."""
-    for _ in range(rounds):
-        where = {tuple(m): i for i, m in zip(np.flatnonzero(assigned), mn[assigned], strict=True)}
-        added = False
-        for i in list(where.values()):
-            for k in range(4):
-                if tuple(mn[i] + _UNIT[k]) in where:
-                    continue
-                step = _local_step(points, mn[i], k, where)
-                if step is None:
-                    continue
-                d, j = tree.query(points[i] + step)
-                if not (np.isfinite(d) and d <= 0.3 * np.linalg.norm(step)) or assigned[j]:
-                    continue
-                if sizes is not None and not (sizes[i] / 1.45 < sizes[j] < sizes[i] * 1.45):
-                    continue
-                assigned[j] = True
-                mn[j] = mn[i] + _UNIT[k]
-                where[tuple(mn[j])] = j
-                added = True
-        if not added:
-            break
-    return mn, assigned
-
-
-def _local_step(points, m, k, where) -> np.ndarray | None:
-    """Step (uv) along direction k (:data:`_UNIT`) at lattice point m: extrapolated to second
-    order from the two steps behind m, else the nearest pair of lattice points one step apart in
-    that direction (behind m, or beside it along the other axis)."""
-    u = _UNIT[k]
-    here, back, back2 = (where.get(tuple(m - j * u)) for j in range(3))
-    if here is not None and back is not None and back2 is not None:  # the step and its change
-        return 2 * points[here] - 3 * points[back] + points[back2]  # p(m+u) − p(m), 2nd order
-    other = _UNIT[2:] if k < 2 else _UNIT[:2]
-    for base in (m - u, m + other[0], m + other[1], m - u + other[0], m - u + other[1]):
-        a, b = where.get(tuple(base)), where.get(tuple(base + u))
-        if a is not None and b is not None:
-            return points[b] - points[a]
-    return None
 
 
 def _unimodular(limit: int = 2) -> np.ndarray:

@@ -1,26 +1,34 @@
-"""Benchmark: the detectors on real photographs of a large dot grid, cut down to a small one.
+"""Benchmark: the detectors on real photographs of a 4 × 3 dot grid, against an image-based truth.
 
-    .venv/bin/python bench/bench_real_photos.py PHOTO... [--rows 4 --cols 3] [--out DIR]
+    .venv/bin/python bench/real_photo_truth.py --out DIR NAME=PHOTO...     # once: images + truth
+    .venv/bin/python bench/bench_real_photos.py DIR [--repeat 3] [--debug OUT]
 
-Real photographs of a plate with many dots (e.g. the UCL calibration grid of
-SciKit-Surgery/scikit-surgeryimage, tests/data/calib-ucl-circles, BSD-3-Clause; not committed
-here) are turned into photographs of a rows × cols grid: every dot-like region of the photograph
-is found (:func:`tasks.detection.blobs.contour_candidates`, full resolution), the rows × cols
-block of dots nearest the image centre is kept and every other region (the rest of the grid and
-any fiducials) is inpainted from the paper around it (``cv2.inpaint``). The dots kept are the
-photograph's own pixels: its blur, noise, colour, lighting, perspective and lens distortion.
+DIR holds ``NAME.png`` (a photograph of a large dot grid cut down to a rows × cols block, the
+block's own pixels) and ``NAME.json`` (its truth), written by ``bench/real_photo_truth.py``
+(see there: the truth is the centre of an ellipse through each dot's visible rim, as fitted by
+hand; a second estimator, the intensity centroid, and a map of the surrounding dots judge it).
 
-There is no ground truth, so accuracy is measured as consistency: the RMS residual (px) of a
-homography fitted to the detector's rows × cols centres (over a block of a few dots a lens's
-distortion is nearly projective; with ``--camera`` the centres are undistorted first, and the
-residual is then mostly centre noise), and the distance of
-each detector's centres to rrht's. Detectors as in bench/bench_stress.py, in the same process on
-the same images. ``--out`` writes the cut-down images and rrht's debug drawings.
+The detectors of bench/bench_stress.py run in the same process on the same images, interleaved
+over the repeats (median wall time kept). Scoring:
+
+* rrht: **found** when it says so and every dot lies within a quarter of the dot size of the
+  true centre of the dot its label names, up to the grid's symmetry (no rotation prior is given,
+  as with ``fivecal detect``); **wrong** when it says so and that fails (a wrong labelling);
+* OpenCV and the baselines order the grid their own way: found when each true dot has exactly
+  one detected centre within a quarter of the dot size (labels not compared), else wrong.
+
+The centre error of a found grid is the distance to the truth (rim ellipse with flat levels); the
+median distances to the two other estimators of real_photo_truth.py (intensity centroid, rim
+ellipse with sloped levels) are printed beside it: where they differ, the dots' images are not
+uniformly dark and their centre is defined no better than that. Per detector:
+found / refused / wrong, the median over the photographs of the per-photograph median error, the
+worst dot, and the median time.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 import time
@@ -28,130 +36,93 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_stress import DETECTORS, run
+from bench_stress import DETECTORS, match_errors, run
 
 from tasks.detection import detect_grid
-from tasks.detection.blobs import contour_candidates
 from tasks.detection.debug_image import draw_detection
-from tasks.detection.grid import build_lattice, reduce_lattice
-from tasks.detection.perspective import fit_homography, project
+from tasks.detection.stress import errors_up_to_symmetry
 from tasks.plate import DotPlate
 
 
-def cut_down(grey: np.ndarray, rows: int, cols: int) -> tuple[np.ndarray, float] | None:
-    """(image with only a rows × cols block of dots left, pitch / diameter), or None."""
-    blobs = contour_candidates(grey, True, 6.0, max(grey.shape) / 6.0)
-    if len(blobs) < rows * cols:
-        return None
-    d = 2 * np.sqrt(blobs.axes[:, 0] * blobs.axes[:, 1])
-    common = np.abs(d / np.median(d) - 1.0) < 0.4  # the grid's dots, not its fiducials
-    pts, dd = blobs.centres[common], d[common]
-    nn = cKDTree(pts).query(pts, k=2)[0][:, 1]
-    ratio = float(np.median(nn) / np.median(dd))
-    mn, assigned = build_lattice(pts, dd, ratio)
-    sel = np.flatnonzero(assigned)
-    if len(sel) < rows * cols:
-        return None
-    g = reduce_lattice(mn[sel])
-    h, w = grey.shape
-    centre = np.array([w / 2, h / 2])
-    seed = int(np.argmin(np.linalg.norm(pts[sel] - centre, axis=1)))
-    lo = g[seed] - np.array([rows // 2, cols // 2])
-    block = np.all((g >= lo) & (g < lo + np.array([rows, cols])), axis=1)
-    if block.sum() != rows * cols:
-        return None
-    keep = np.zeros(len(blobs), bool)
-    keep[np.flatnonzero(common)[sel[block]]] = True
-    mask = np.zeros(grey.shape, np.uint8)
-    for (u, v), (a, b), th, k in zip(blobs.centres, blobs.axes, blobs.theta, keep, strict=True):
-        if not k:
-            cv2.ellipse(mask, ((float(u), float(v)), (2.6 * a + 6, 2.6 * b + 6), float(np.degrees(th))), 255, -1)
-    return cv2.inpaint(grey, mask, 5, cv2.INPAINT_TELEA), ratio
-
-
-def homography_rms(centres: np.ndarray, plate: DotPlate, camera: tuple[np.ndarray, np.ndarray] | None) -> float:
-    """RMS residual (px) of a homography from the plate's dot positions to ``centres`` (rows*cols, 2),
-    given in the plate's row-major order; with ``camera`` (K (3, 3), OpenCV distortion) the
-    centres are undistorted first (to pixels of the same K)."""
-    xy = plate.dot_centres_mm()[:, :2]
-    if camera is not None:
-        k, dist = camera
-        centres = cv2.undistortPoints(centres.reshape(-1, 1, 2), k, dist, P=k).reshape(-1, 2)
-    h = fit_homography(xy, centres)
-    return float(np.sqrt(np.mean(np.sum((project(h, xy) - centres) ** 2, axis=1))))
+def score(detector: str, centres: np.ndarray | None, plate: DotPlate, truth: np.ndarray,
+          dot_px: float) -> tuple[str, np.ndarray | None]:
+    """("found" | "refused" | "wrong", per-dot errors px or None) of one detector's answer."""
+    if centres is None:
+        return "refused", None
+    if detector == "rrht":
+        e = errors_up_to_symmetry(plate, centres, truth)
+        return ("found", e) if e.max() < 0.25 * dot_px else ("wrong", None)
+    e = match_errors(centres, truth, dot_px)
+    return ("found", e) if e is not None else ("wrong", None)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("photos", nargs="+", type=Path)
-    ap.add_argument("--rows", type=int, default=4)
-    ap.add_argument("--cols", type=int, default=3)
+    ap.add_argument("folder", type=Path, help="written by bench/real_photo_truth.py")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--camera", nargs=2, type=Path, metavar=("K.txt", "DIST.txt"),
-                    help="the photos' intrinsic matrix and distortion (whitespace-separated text, OpenCV model): "
-                         "centres are undistorted before the homography fit")
+    ap.add_argument("--only", default="", help="only photographs whose name contains this")
+    ap.add_argument("--debug", type=Path, default=None, help="write rrht's debug drawings here")
     args = ap.parse_args()
-    camera = None
-    if args.camera:
-        camera = (np.loadtxt(args.camera[0]).reshape(3, 3), np.loadtxt(args.camera[1]).ravel())
-    rows = []
-    for path in args.photos:
-        raw = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if raw is None:
-            print(f"{path}: not an image OpenCV can read")
-            continue
-        grey = cv2.cvtColor(raw, cv2.COLOR_BGR2GRAY)
-        cut = cut_down(grey, args.rows, args.cols)
-        if cut is None:
-            print(f"{path.name}: no {args.rows}x{args.cols} block of dots to keep")
-            continue
-        image, ratio = cut
-        plate = DotPlate(args.rows, args.cols, ratio, 1.0)
-        if args.out:
-            args.out.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(args.out / f"{path.stem}_grid.png"), image)
-            cv2.imwrite(str(args.out / f"{path.stem}_debug.png"),
-                        draw_detection(image, detect_grid(image, plate, "rrht"), plate))
+    rows, warm = [], False
+    for jpath in sorted(p for p in args.folder.glob("*.json") if args.only in p.stem):
+        t = json.loads(jpath.read_text())
+        image = cv2.imread(str(jpath.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
+        plate = DotPlate(t["rows"], t["cols"], t["pitch_over_diameter"], 1.0)
+        truth, dot_px = np.array(t["truth_px"]), t["dot_diameter_px"]
+        others = {"centroid": np.array(t["centroid_px"]), "sloped": np.array(t["rim_sloped_px"])}
+        if not warm:
+            for d in DETECTORS:
+                run(d, image, plate)
+            warm = True
         out, times = {}, {d: [] for d in DETECTORS}
         for _ in range(args.repeat):
             for d in DETECTORS:
                 t0 = time.perf_counter()
                 out[d] = run(d, image, plate)
                 times[d].append(time.perf_counter() - t0)
-        ref = out["rrht"]
-        row = {"photo": path.name}
-        line = f"{path.name:32s} pitch/d {ratio:4.2f}"
+        if args.debug:
+            args.debug.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(args.debug / f"{jpath.stem}.png"), draw_detection(image, detect_grid(image, plate), plate))
+        row = {"name": jpath.stem, "spread": {k: float(np.median(np.linalg.norm(truth - v, axis=1)))
+                                              for k, v in others.items()}}
+        line = f"{jpath.stem:44s} d {dot_px:5.1f}px truth-centroid {row['spread']['centroid']:.2f}"
         for d in DETECTORS:
-            c = out[d]
-            row[d + "_ms"] = 1e3 * statistics.median(times[d])
-            if c is None or not np.isfinite(c).all():
-                row[d + "_rms"] = row[d + "_to_rrht"] = None
-                line += f" | {d} --"
-                continue
-            if d == "rrht":
-                row[d + "_rms"] = homography_rms(c, plate, camera)
-            else:  # their own order: put their centres in rrht's order (nearest), then fit
-                j = cKDTree(c).query(ref)[1] if ref is not None else np.arange(len(c))
-                one_to_one = ref is not None and len(set(j)) == len(c)
-                row[d + "_rms"] = homography_rms(c[j], plate, camera) if one_to_one else None
-            row[d + "_to_rrht"] = (float(np.median(cKDTree(c).query(ref)[0])) if ref is not None else None)
-            line += f" | {d} ok {row[d + '_ms']:5.0f} ms H-rms {row[d + '_rms'] or float('nan'):.3f}"
+            verdict, e = score(d, out[d], plate, truth, dot_px)
+            e_other = {k: score(d, out[d], plate, v, dot_px)[1] for k, v in others.items()}
+            row[d] = (verdict, e, e_other, 1e3 * statistics.median(times[d]))
+            line += f" | {d} {verdict[:5]}" + (f" {np.median(e):.2f}" if e is not None else "")
         rows.append(row)
         print(line, flush=True)
     if not rows:
+        print(f"no NAME.json in {args.folder}")
         return
-    print(f"\n{'detector':15s} {'found':>7s} {'median H-rms px':>16s} {'median |c - rrht| px':>21s} {'median ms':>10s}")
+    spread = {k: statistics.median(r["spread"][k] for r in rows) for k in ("centroid", "sloped")}
+    print(f"\n{len(rows)} photographs; median over them of the per-photo median distance from the truth (rim "
+          f"ellipse, flat levels) to the intensity centroids {spread['centroid']:.3f} px, to the rim ellipses "
+          f"with sloped levels {spread['sloped']:.3f} px")
+    print(f"{'detector':15s} {'found':>6s} {'refused':>8s} {'wrong':>6s} {'median err px':>14s} "
+          f"{'vs centroid':>12s} {'vs sloped rim':>14s} {'worst dot px':>13s} {'median ms':>10s}")
     for d in DETECTORS:
-        ok = [r for r in rows if r[d + "_rms"] is not None]
-        rms = statistics.median(r[d + "_rms"] for r in ok) if ok else float("nan")
-        to = [r[d + "_to_rrht"] for r in ok if r[d + "_to_rrht"] is not None]
-        print(f"{d:15s} {len(ok):3d}/{len(rows):<3d} {rms:16.3f} {statistics.median(to) if to else float('nan'):21.3f} "
-              f"{statistics.median(r[d + '_ms'] for r in rows):10.1f}")
+        n = {v: sum(r[d][0] == v for r in rows) for v in ("found", "refused", "wrong")}
+        errs = [r[d][1] for r in rows if r[d][1] is not None]
+
+        def med(es):
+            return statistics.median(float(np.median(e)) for e in es) if es else float("nan")
+
+        other = {k: med([r[d][2][k] for r in rows if r[d][2][k] is not None]) for k in ("centroid", "sloped")}
+        worst = max(float(e.max()) for e in errs) if errs else float("nan")
+        print(f"{d:15s} {n['found']:6d} {n['refused']:8d} {n['wrong']:6d} {med(errs):14.3f} {other['centroid']:12.3f} "
+              f"{other['sloped']:14.3f} {worst:13.3f} {statistics.median(r[d][3] for r in rows):10.1f}")
+    for ref in ("cv2+clustering", "cv2"):
+        both = [r for r in rows if r["rrht"][1] is not None and r[ref][1] is not None]
+        if both:
+            sp = statistics.mean(r[ref][3] for r in both) / statistics.mean(r["rrht"][3] for r in both)
+            print(f"on the {len(both)} photographs rrht and {ref} both found: {ref} time / rrht time {sp:.2f}x, "
+                  f"median error rrht {statistics.median(float(np.median(r['rrht'][1])) for r in both):.3f} px, "
+                  f"{ref} {statistics.median(float(np.median(r[ref][1])) for r in both):.3f} px")
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ from tasks.detection import DETECTORS, GridDetection, detect_grid
 from tasks.detection.chaincode import filter_edges
 from tasks.detection.conics import ellipse_params, fit_conic_lsq, ransac_ellipse
 from tasks.detection.framework import FrameworkParams, detect_rrht
-from tasks.detection.grid import order_grid
+from tasks.detection.grid import build_lattice, order_grid, reduce_lattice
 from tasks.detection.perspective import centre_bias, correct_bias
 from tasks.detection.subpixel import SubpixelParams
 from tasks.detection.synthetic import (
@@ -172,6 +172,27 @@ def test_a_rectangular_lattice_is_never_labelled_a_quarter_turn_off():
     half_turn = truth[::-1]  # row-major order reversed: the same lattice labelled from the far corner
     off = min(np.max(np.linalg.norm(det0.centres - t, axis=1)) for t in (truth, half_turn))
     assert off < 0.1
+
+
+def test_a_lattice_through_strong_barrel_distortion_is_grown_whole():
+    """A 4 × 3 grid off the axis of a fisheye lens (k1 −0.35, k2 0.1, f 170 px, as the fisheye
+    stress case): the step from a dot to its neighbour on the squeezed side is much shorter than
+    to the other side, so that one step per axis carried from dot to dot missed (6 of the 12
+    found); growth keeps a step per direction."""
+    f, k1, k2, pitch = 170.0, -0.35, 0.1, 60.0
+    r, c = np.meshgrid(np.arange(4), np.arange(3), indexing="ij")
+    und = np.stack([c.ravel() * pitch - pitch + 60.0, r.ravel() * pitch - 1.5 * pitch + 75.0], axis=1) / f
+    r2 = (und ** 2).sum(axis=1)
+    scale = 1 + k1 * r2 + k2 * r2 ** 2
+    pts = np.array([160.0, 180.0]) + f * und * scale[:, None]
+    sizes = 0.4 * pitch * scale  # dots shrink with the local magnification
+    mn, assigned = build_lattice(pts, sizes, 2.5)
+    assert assigned.all()
+    box = reduce_lattice(mn)
+    box -= box.min(axis=0)
+    assert sorted(box[:, 0].tolist()) == sorted(r.ravel().tolist())  # 4 rows of 3 …
+    assert sorted(box[:, 1].tolist()) == sorted(c.ravel().tolist())  # … each a row of the plate
+    assert len({tuple(m) for m in box}) == 12
 
 
 def test_light_dots_on_a_dark_plate():

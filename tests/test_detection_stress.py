@@ -16,7 +16,9 @@ from typer.testing import CliRunner
 from fivecal.cli import app
 from tasks.detection import detect_grid
 from tasks.detection.debug_image import BANNER_FAIL, BANNER_OK, draw_detection
+from tasks.detection.framework import FrameworkParams, detect_rrht
 from tasks.detection.stress import STRESS_CASES, errors_up_to_symmetry, render_stress_case
+from tasks.detection.subpixel import SubpixelParams
 
 CASES = {c.name: c for c in STRESS_CASES}
 SMALL_PHONE = replace(CASES["phone-12mp"], name="phone-3mp", width=1512, height=2016, dot_px=75.0)
@@ -47,6 +49,24 @@ def test_stress_case_is_found_and_labelled(case, median_px, max_px):
     err = errors_up_to_symmetry(_plate(case), det.centres, truth)
     assert err.max() < 0.25 * case.dot_px  # every dot labelled as the right one
     assert np.median(err) < median_px and err.max() < max_px
+
+
+def test_a_dot_darker_on_one_side_pulls_the_rim_fit_unless_its_slope_is_modelled():
+    """Real photographs' dots are often shaded across (bench/real_photo_truth.py: their intensity
+    centroids sit 0.4–1.5 px off their rim ellipses). A flat-topped step fit is pulled towards the
+    lighter side; ``SubpixelParams(inner_slope=True)`` fits the sloped inside (off by default)."""
+    case = CASES["shaded-dots"]  # contrast falling by 60 % across each dot, σ ≈ 2.8 px rims
+    image, truth = render_stress_case(case)
+    plate = _plate(case)
+    flat = detect_grid(image, plate, "rrht")
+    assert flat.ok, flat.reason
+    assert np.median(errors_up_to_symmetry(plate, flat.centres, truth)) > 0.5
+    sloped = detect_rrht(image, plate, params=FrameworkParams(subpixel=SubpixelParams(inner_slope=True)))
+    err = errors_up_to_symmetry(plate, sloped.centres, truth)
+    assert np.median(err) < 0.1 and err.max() < 0.2
+    clean_image, clean_truth = render_stress_case(replace(case, ink_gradient=0.0))
+    clean = detect_rrht(clean_image, plate, params=FrameworkParams(subpixel=SubpixelParams(inner_slope=True)))
+    assert np.median(errors_up_to_symmetry(plate, clean.centres, clean_truth)) < 0.05
 
 
 def test_a_grid_of_other_dimensions_is_refused_with_a_reason():

@@ -121,24 +121,25 @@ def _grow(points, tree, seed, steps, has, sizes):
 
     Every frontier point predicts its 4 neighbours one local step away (one batched KD-tree
     query per frontier); a point within 30 % of a step of a prediction joins the lattice (first
-    claim wins) and inherits the local steps, updated along the axis it was reached by.
+    claim wins) and inherits the local steps, updated along the direction it was reached by (and
+    its opposite). The four directions keep their own steps: under strong lens distortion the
+    step to one side of a dot can be half as long again as the step to the other.
     """
     n = len(points)
     mn = np.zeros((n, 2), int)
     assigned = np.zeros(n, bool)
-    b = np.zeros((n, 2, 2))  # local step vectors (axis, uv)
-    a0 = steps[seed, 0] if has[seed, 0] else -steps[seed, 1]
-    a1 = steps[seed, 2] if has[seed, 2] else -steps[seed, 3]
-    b[seed] = [a0, a1]
+    b = np.zeros((n, 4, 2))  # local step vectors along +axis0, -axis0, +axis1, -axis1 (uv)
+    for k in range(4):
+        opposite = k ^ 1
+        b[seed, k] = steps[seed, k] if has[seed, k] else -steps[seed, opposite]
     assigned[seed] = True
     frontier = np.array([seed])
     axis_of = np.array([0, 0, 1, 1])
     sign_of = np.array([1.0, -1.0, 1.0, -1.0])
     while len(frontier):
         f = np.repeat(frontier, 4)  # (F*4,)
-        ax = np.tile(axis_of, len(frontier))
-        sg = np.tile(sign_of, len(frontier))
-        step = sg[:, None] * b[f, ax]  # (F*4, 2)
+        k = np.tile(np.arange(4), len(frontier))
+        step = b[f, k]  # (F*4, 2)
         d, j = tree.query(points[f] + step)
         ok = np.isfinite(d) & (d <= 0.3 * np.linalg.norm(step, axis=1))
         j = np.where(ok, j, 0)
@@ -148,12 +149,14 @@ def _grow(points, tree, seed, steps, has, sizes):
         sel = np.flatnonzero(ok)
         _, first = np.unique(j[sel], return_index=True)
         sel = sel[first]
-        jj, ff, aa, ss = j[sel], f[sel], ax[sel], sg[sel]
+        jj, ff, kk = j[sel], f[sel], k[sel]
         assigned[jj] = True
         mn[jj] = mn[ff]
-        mn[jj, aa] += ss.astype(int)
+        mn[jj, axis_of[kk]] += sign_of[kk].astype(int)
         b[jj] = b[ff]
-        b[jj, aa] = ss[:, None] * (points[jj] - points[ff])
+        taken = points[jj] - points[ff]
+        b[jj, kk] = taken
+        b[jj, kk ^ 1] = -taken
         frontier = jj
     return mn, assigned
 

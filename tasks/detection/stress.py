@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from tasks.camera_model import CameraModel
 from tasks.plate import DotPlate, facing_camera_pose
@@ -43,7 +44,9 @@ class StressCase:
     soft shadow edge across the plate (1 = none); colour: render a colour file; jpeg: JPEG
     quality (0 = none); defocus_px: extra Gaussian blur σ; texture_scale (× dot_px) and
     texture_contrast (DN, σ) of the background blotches; sheet_shade: factor on the sheet alone
-    (a sheet in the shade before a sunlit garden).
+    (a sheet in the shade before a sunlit garden); ink_gradient: each dot's contrast falls by
+    this fraction across it along one direction (shading or uneven ink, as in real photographs: a
+    dot darker on one side).
     """
 
     name: str
@@ -69,6 +72,7 @@ class StressCase:
     texture_scale: float = 3.0
     texture_contrast: float = 55.0
     sheet_shade: float = 1.0
+    ink_gradient: float = 0.0
     seed: int = 0
     plate: DotPlate = field(default=ISSUE_PLATE)
 
@@ -151,6 +155,9 @@ def render_stress_case(case: StressCase) -> tuple[np.ndarray, np.ndarray]:
                              vignetting=case.vignetting, gradient=case.gradient, gradient_angle_deg=35.0,
                              defocus=False, aberration_sigma_px=0.6 + case.defocus_px)
     grey = render_plate_image(cam, plate, pose, cond, seed=case.seed).astype(np.float32)
+    truth = true_dot_centres(cam, plate, pose)
+    if case.ink_gradient:
+        grey = _shade_dots(grey, truth, case, rng)
     mask = np.zeros(grey.shape, np.uint8)
     cv2.fillPoly(mask, [np.round(plate_outline_px(case) * 16).astype(np.int32)], 255, cv2.LINE_AA, shift=4)
     scale = max(case.width, case.height)
@@ -184,7 +191,28 @@ def render_stress_case(case: StressCase) -> tuple[np.ndarray, np.ndarray]:
         if case.jpeg:
             img = cv2.imdecode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, case.jpeg])[1],
                                cv2.IMREAD_GRAYSCALE)
-    return img, true_dot_centres(cam, plate, pose)
+    return img, truth
+
+
+def _shade_dots(grey: np.ndarray, centres: np.ndarray, case: StressCase, rng: np.random.Generator) -> np.ndarray:
+    """``grey`` with each dot's contrast against the paper scaled by 1 − g·(1 − x/r)/2 along one
+    random direction (x: offset from the nearest dot centre, clipped to ±r; r: dot radius; g:
+    case.ink_gradient), out to 1.2 radii and fading to none at 1.4 (the paper around the dot,
+    whose contrast is nil, is left alone): the dot's contrast falls linearly by the fraction g
+    across it, the dot is darker on one side."""
+    k = int(2 * case.dot_px) | 1
+    extreme = cv2.dilate if case.dark_dots else cv2.erode
+    paper = cv2.GaussianBlur(extreme(cv2.GaussianBlur(grey, (0, 0), 2.0), np.ones((k, k), np.uint8)), (0, 0),
+                             case.dot_px / 2)
+    vv, uu = np.mgrid[0 : grey.shape[0], 0 : grey.shape[1]].astype(np.float32)
+    dist, nearest = cKDTree(centres).query(np.stack([uu.ravel(), vv.ravel()], axis=1))
+    dist, nearest = dist.reshape(grey.shape), nearest.reshape(grey.shape)
+    ang = rng.uniform(0, 2 * np.pi)
+    r = case.dot_px / 2
+    x = (uu - centres[nearest, 0]) * math.cos(ang) + (vv - centres[nearest, 1]) * math.sin(ang)
+    near = np.clip((1.4 * r - dist) / (0.2 * r), 0.0, 1.0)
+    gain = 1.0 - case.ink_gradient * (1.0 - np.clip(x / r, -1.0, 1.0)) / 2 * near  # ≤ 1: nothing clips
+    return paper + (grey - paper) * gain
 
 
 STRESS_CASES: tuple[StressCase, ...] = (
@@ -209,6 +237,8 @@ STRESS_CASES: tuple[StressCase, ...] = (
                texture=True, jpeg=85, seed=8),
     StressCase("uneven-light", 1280, 960, 40.0, tilt_deg=30.0, gradient=1.2, vignetting=0.5, shadow=0.35,
                clutter=20, jpeg=85, seed=9),
+    StressCase("shaded-dots", 1280, 960, 32.0, tilt_deg=15.0, ink_gradient=0.6, defocus_px=1.5, clutter=10,
+               jpeg=85, colour=True, seed=13),
     StressCase("light-tilt", 1280, 960, 50.0, tilt_deg=40.0, tilt_azimuth_deg=120.0, dark_dots=False,
                clutter=20, texture=True, colour=True, jpeg=85, seed=10),
 )

@@ -62,6 +62,11 @@ class SubpixelParams:
     max_level: int = 4  # largest area-averaging factor for blurry rims …
     sigma_per_level: float = 1.25  # … level = ⌊median σ / sigma_per_level⌋
     erf_iterations: int = 2
+    # inner_slope: a dot whose contrast changes by more than min_shading from its centre to its rim on
+    # one side is refitted with a sloped inside (step_fit, shading); off by default: on real photographs
+    # it did not agree better with a hand-fit-like rim truth (docs/detector-comparison.md)
+    inner_slope: bool = False
+    min_shading: float = 0.1
     shared_blur_iterations: int = 1  # then (t_e, a, b) refits with σ from the per-dot blur model
     max_refine: int = 3  # pass-2 repetitions at most (each re-centres the rays) …
     refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this
@@ -222,7 +227,8 @@ def solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
     return x
 
 
-def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None):
+def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None,
+             slope: np.ndarray | None = None, free_slope: bool = False):
     """Per-ray least-squares fit of a blurred step I(t) = a + (b − a) Φ((t − t_e) / s).
 
     prof, t: (K, R, T) grey levels and their distances along each ray; t0, i_in, i_out: (K, R)
@@ -231,8 +237,11 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
     that every sum over a profile is a fast leading-axis reduction). Unlike the area locator,
     which weights every sample of the window equally, this weights samples by how much they tell
     about the edge position, so the noise of the flat parts of the window hardly enters t_e.
-    Returns (t_e (K, R), s (K, R) px, converged (K, R), a (K, R), b (K, R)): a and b are the
-    fitted grey levels inside and outside the rim.
+    slope: (K, R) a slope m of the dot's level towards the rim (grey levels / px), the model then
+    I(t) + m (t − t_e)(1 − Φ) (a dot darker on one side, :func:`odd_part`); free_slope: m is
+    fitted too (starting from ``slope`` or 0).
+    Returns (t_e (K, R), s (K, R) px, converged (K, R), a (K, R), b (K, R), m (K, R)): a and b
+    are the fitted grey levels inside (at the rim) and outside the rim, m the slope.
     """
     f32 = np.float32
     shape = t0.shape
@@ -246,17 +255,23 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
         ls = np.broadcast_to(np.log(np.maximum(sigma0, 0.3))[:, None], shape).reshape(-1).astype(f32)
     else:
         ls = np.log(np.maximum(fixed_sigma, 0.3)).reshape(-1).astype(f32)
-    npar = 4 if fixed_sigma is None else 3
+    n_base = 4 if fixed_sigma is None else 3
+    npar = n_base + int(free_slope)
+    m = np.zeros_like(te) if slope is None else slope.reshape(-1).astype(f32)
     for _ in range(iterations):
         s = np.exp(ls)
         inv_s = f32(1.0) / s
-        z = (tt - te) * inv_s
+        dt = tt - te
+        z = dt * inv_s
         phi = _phi(z)
         dens = np.exp(f32(-0.5) * z * z) * f32(0.3989422804014327)
         c = b - a
-        r = y - (a + c * phi)  # (T, N)
-        cd = c * dens
-        cols = (-cd * inv_s, f32(1.0) - phi, phi, -cd * z)[:npar]  # Jacobian columns (T, N)
+        r = y - (a + c * phi + m * dt * (f32(1.0) - phi))  # (T, N)
+        cd = c * dens - m * dt * dens
+        # Jacobian columns (T, N)
+        cols = [-cd * inv_s - m * (f32(1.0) - phi), f32(1.0) - phi, phi, -cd * z][:n_base]
+        if free_slope:
+            cols.append(dt * (f32(1.0) - phi))
         jtj = np.empty((npar, npar, len(te)))
         jtr = np.empty((npar, len(te)))
         for i in range(npar):
@@ -269,13 +284,33 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
         step[0] = np.clip(step[0], -lim, lim)
         step = np.nan_to_num(step).astype(f32)
         te, a, b = te + step[0], a + step[1], b + step[2]
-        if npar == 4:
+        if fixed_sigma is None:
             ls = ls + np.clip(step[3], -0.7, 0.7)
+        if free_slope:
+            m = m + step[npar - 1]
     te = te.astype(float).reshape(shape)
     s = np.exp(ls.astype(float)).reshape(shape)
     good = np.isfinite(te) & np.isfinite(s) & (np.abs(te - t0) < 3.0 * np.maximum(sigma0[:, None], 1.0))
     return (np.where(good, te, t0), np.where(good, s, np.nan), good, a.astype(float).reshape(shape),
-            b.astype(float).reshape(shape))
+            b.astype(float).reshape(shape), m.astype(float).reshape(shape))
+
+
+def odd_slope(m: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
+    """(K, 2): per dot, (m_x, m_y) of the fit m ≈ m_x cos + m_y sin of the rays' inner slopes m
+    (K, R) over the ``ok`` rays (angles ``ang`` (R,)): the dot's shading gradient (grey levels /
+    px). Shading across a dot gives slopes odd in the ray angle; the blurred rim's curvature and
+    an ellipse's changing radius give even ones."""
+    ok = ok & np.isfinite(m)
+    c, sn = np.cos(ang)[None, :], np.sin(ang)[None, :]
+    w = ok.astype(float)
+    mw = np.where(ok, m, 0.0)
+    scc, sss, scs = (w * c * c).sum(1), (w * sn * sn).sum(1), (w * c * sn).sum(1)
+    bc, bs = (mw * c).sum(1), (mw * sn).sum(1)
+    det = scc * sss - scs ** 2
+    good = det > 1e-6 * np.maximum(scc * sss, 1e-12)
+    mx = np.where(good, (bc * sss - bs * scs) / np.where(good, det, 1.0), 0.0)
+    my = np.where(good, (bs * scc - bc * scs) / np.where(good, det, 1.0), 0.0)
+    return np.stack([mx, my], axis=1)
 
 
 def blur_model(s: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
@@ -416,6 +451,38 @@ def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
     return c1, ax1, th1, sigma
 
 
+def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, free_slope: bool):
+    """The two step fits of pass 2 (σ free, then σ from the per-dot blur model), optionally with a
+    sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable) (K, R)."""
+    te, s, conv, lev_in, lev_out, _ = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations,
+                                               free_slope=free_slope)
+    usable = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
+    s2 = blur_model(s, usable, ang)
+    if p.shared_blur_iterations:
+        # refit with σ from the smooth per-dot model: t_e no longer trades off against a noisy s
+        te, _, conv, _, _, _ = step_fit(prof, t, te, lev_in, lev_out, sigma,
+                                        p.shared_blur_iterations + int(free_slope) * p.erf_iterations,
+                                        fixed_sigma=np.sqrt(s2), free_slope=free_slope)
+    return te, conv, s, s2, usable
+
+
+def shading(prof, t, te, s, ok, ang, contrast, minor_axes) -> np.ndarray:
+    """(K,) how much each dot's contrast changes from its centre to its rim on its darker side, as a
+    fraction of the contrast ``contrast`` (K,): per ray the slope m of a straight line through the
+    samples of the dot's inside (more than 2 s (K, R) inside the rim t_e (K, R)), then the part of
+    m odd in the ray angle (:func:`odd_slope`, over the ``ok`` rays with 3 such samples or more)
+    times the minor semi-axis (K,)."""
+    w = (t < (te - 2.0 * s)[..., None]).astype(np.float64)
+    n = w.sum(axis=2)
+    tm = (w * t).sum(axis=2) / np.maximum(n, 1)
+    pm = (w * prof).sum(axis=2) / np.maximum(n, 1)
+    dt = (t - tm[..., None]) * w
+    var = (dt * dt).sum(axis=2)
+    m = np.where(var > 0, (dt * (prof - pm[..., None])).sum(axis=2) / np.where(var > 0, var, 1.0), np.nan)
+    grad = odd_slope(m, ok & (n >= 3), ang)
+    return np.hypot(grad[:, 0], grad[:, 1]) * minor_axes / np.where(np.isfinite(contrast), contrast, np.inf)
+
+
 def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | None = None):
     """Precise rim points along pass-2 rays: (x, y, valid (K, R), s (K, R), ang (R,), gain field).
 
@@ -451,13 +518,15 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | Non
     g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
     dts = (2 * half_w / (n2 - 1))[:, None]
     te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
-    te, s, conv, lev_in, lev_out = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations)
-    usable = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
-    s2 = blur_model(s, usable, ang)
-    if p.shared_blur_iterations:
-        # refit with σ from the smooth per-dot model: t_e no longer trades off against a noisy s
-        te, _, conv, _, _ = step_fit(prof, t, te, lev_in, lev_out, sigma, p.shared_blur_iterations,
-                                     fixed_sigma=np.sqrt(s2))
+    te, conv, s, s2, usable = _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, False)
+    if p.inner_slope:  # dots darker on one side: refit them with a sloped inside, which would move t_e
+        shaded = shading(prof, t, te, np.sqrt(s2), usable, ang, med_c, axs[:, 1]) > p.min_shading
+        if shaded.any():
+            k = np.flatnonzero(shaded)
+            fits = _step_fits(prof[k], t[k], te[k], i_in[k], i_out[k], sigma[k], contrast[k], med_c[k], inside[k],
+                              ang, p, True)
+            for full, part in zip((te, conv, s, s2, usable), fits, strict=True):
+                full[k] = part
     valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
     valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(np.sqrt(s2), half_w[:, None] / 2)
     if p.blur_curvature_correction:

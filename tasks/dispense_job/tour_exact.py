@@ -1,0 +1,285 @@
+"""The dispensing tour over many boards: the shortest closed tour from the home position through every
+dispensing point, proven optimal by integer programming up to ``EXACT_MAX_POINTS`` points, and beside
+it the paper's simulated annealing, nearest neighbour and the return-to-origin path on the same points.
+
+The exact method is the Dantzig–Fulkerson–Johnson formulation on the complete graph of home + points
+(one binary per edge, every node of degree 2) solved by HiGHS (``scipy.optimize.milp``) with subtour
+cuts added as they are found: first on the LP relaxation (connected components of the support graph,
+then the global minimum cut), then on the integer solutions, until the solution is one cycle. That
+cycle is optimal for the full problem because every subtour constraint left out is satisfied by it.
+Beyond the exact range, iterated local search gives the tour and the Held–Karp bound
+(tour_bound.py) states how far from the optimum it can be.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+
+from tasks.dispense_job import tour_heuristics as heur
+from tasks.dispense_job.tour_bound import components, distance_matrix, global_min_cut, held_karp_bound
+
+EXACT_MAX_POINTS = 60  # the integer program is run up to this many points (home not counted)
+METHODS = ("optimal", "annealing", "nearest", "return_to_origin", "given_order")
+NEAR_COUNT = 8  # neighbour-list length of the local search
+LARGE_SEARCH_SECONDS = 3.0  # wall-time cap of the iterated local search beyond the exact range
+MERGED_RUNS = 4  # independent local searches recombined by tour merging
+MERGE_SECONDS = 1.0  # wall-time cap of the merging integer program
+
+
+@dataclass(frozen=True)
+class Tour:
+    """A closed dispensing tour home → points[order[0]] → … → points[order[-1]] → home.
+
+    ``length_mm`` is its length (for ``return_to_origin``: home → each point → home, in ``order``);
+    ``lower_bound_mm`` a proven lower bound on the shortest closed tour through home and the points;
+    ``proven_optimal`` says the length equals that bound (to 1e-9 relative); ``seconds`` is the
+    planning wall time."""
+
+    order: np.ndarray
+    length_mm: float
+    lower_bound_mm: float
+    proven_optimal: bool
+    method: str
+    seconds: float
+
+    @property
+    def gap(self) -> float:
+        """Relative excess of the tour over the lower bound (0 for a proven optimum)."""
+        return self.length_mm / self.lower_bound_mm - 1.0 if self.lower_bound_mm > 0 else 0.0
+
+
+def plan_tour(
+    points_mm: np.ndarray,
+    home_mm: tuple[float, float] | np.ndarray = (0.0, 0.0),
+    method: str = "optimal",
+    seed: int = 0,
+    *,
+    exact_max_points: int = EXACT_MAX_POINTS,
+    search_seconds: float = LARGE_SEARCH_SECONDS,
+) -> Tour:
+    """Plan the visiting order of ``points_mm`` (n, 2) machine XY (mm), starting and ending at
+    ``home_mm``.
+
+    method: ``optimal`` (proven optimum up to ``exact_max_points`` points, else iterated local search
+    for up to ``search_seconds`` with its Held–Karp bound), ``annealing`` (the paper's simulated
+    annealing, Table 3), ``nearest`` (nearest neighbour), ``return_to_origin`` (the paper's traditional
+    path: back home after every point, points in the given order), ``given_order`` (the points in the
+    given order, one closed tour). ``seed`` drives the random choices of annealing and local search."""
+    if method not in METHODS:
+        raise ValueError(f"unknown tour method {method!r}; expected one of {', '.join(METHODS)}")
+    pts = _checked_points(points_mm)
+    home = np.asarray(home_mm, dtype=float).reshape(2)
+    t0 = time.perf_counter()
+    n = pts.shape[0]
+    if n == 0:
+        return Tour(np.zeros(0, np.int64), 0.0, 0.0, True, method, time.perf_counter() - t0)
+    dist = distance_matrix(np.vstack([home, pts]))
+    if method == "optimal" and n <= exact_max_points:
+        order, length, bound = _exact(dist, seed)
+    else:
+        order, length, bound = _by_heuristic(dist, method, seed, search_seconds)
+    proven = length <= bound * (1.0 + 1e-9)
+    return Tour(order, float(length), float(min(bound, length)), bool(proven), method, time.perf_counter() - t0)
+
+
+def tour_path_mm(points_mm: np.ndarray, tour: Tour, home_mm=(0.0, 0.0)) -> np.ndarray:
+    """(k, 2) machine XY waypoints (mm) the head passes through, home first and last: for the
+    return-to-origin tour home sits between every two points."""
+    pts = _checked_points(points_mm)
+    home = np.asarray(home_mm, dtype=float).reshape(1, 2)
+    visits = pts[tour.order]
+    if tour.method == "return_to_origin":
+        stops = np.empty((2 * len(visits), 2))
+        stops[0::2] = visits
+        stops[1::2] = home
+        return np.vstack([home, stops])
+    return np.vstack([home, visits, home])
+
+
+def _checked_points(points_mm: np.ndarray) -> np.ndarray:
+    pts = np.asarray(points_mm, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points_mm must be an (n, 2) array of machine XY in mm, got shape {pts.shape}")
+    bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+    if bad.size:
+        raise ValueError(f"points_mm row {bad[0]} is not finite: {pts[bad[0]].tolist()}")
+    return pts
+
+
+def _as_order(node_tour: np.ndarray) -> np.ndarray:
+    """Point indices in visiting order from a node cycle that starts at node 0 (home)."""
+    return np.asarray(node_tour[1:], np.int64) - 1
+
+
+def _good_tour(dist: np.ndarray, seed: int, seconds: float) -> tuple[np.ndarray, float]:
+    """A short tour and the Held–Karp bound (mm). Local search from nearest neighbour gives the upper
+    bound for the bound's ascent; ``MERGED_RUNS`` iterated local searches (``seconds`` shared between
+    them) on neighbour lists ranked by the penalised costs c_ij + π_i + π_j (closer to the optimal
+    tour's edges than plain distance) are then recombined by the integer program on the union of
+    their edges (tour merging), which is never longer than the best of them."""
+    n = dist.shape[0]
+    start = heur.local_search(dist, heur.near_neighbours(dist, NEAR_COUNT), heur.nearest_neighbour(dist),
+                              np.ones(n, np.bool_))
+    bound = held_karp_bound(dist, float(heur.tour_length(dist, start)))
+    if seconds <= 0.0:
+        return start, bound.bound_mm
+    pi = bound.penalties_mm
+    near = heur.near_neighbours(dist + pi[:, None] + pi[None, :], NEAR_COUNT)
+    tours = [
+        heur.iterated_local_search(dist, near, start, kicks=max(1000, 400 * n), seconds=seconds / MERGED_RUNS,
+                                   seed=seed * MERGED_RUNS + run)
+        for run in range(MERGED_RUNS)
+    ]
+    best = min(tours, key=lambda t: heur.tour_length(dist, t))
+    edges = np.sort(np.concatenate([np.stack([t, np.roll(t, -1)], axis=1) for t in tours]), axis=1)
+    ei, ej = np.unique(edges, axis=0).T
+    try:
+        merged, _ = shortest_cycle_on_edges(dist, ei, ej, seconds=MERGE_SECONDS)
+    except RuntimeError:  # the merge ran out of time: keep the best single run
+        return best, bound.bound_mm
+    if heur.tour_length(dist, merged) < heur.tour_length(dist, best):
+        best = merged
+    return best, bound.bound_mm
+
+
+def _by_heuristic(dist: np.ndarray, method: str, seed: int, seconds: float) -> tuple[np.ndarray, float, float]:
+    m = dist.shape[0]
+    identity = np.arange(m, dtype=np.int64)
+    if m <= 3:
+        reference, bound = identity, float(heur.tour_length(dist, identity))
+    else:
+        reference, bound = _good_tour(dist, seed, seconds if method == "optimal" else 0.0)
+    if method == "optimal":
+        tour = reference
+    elif method == "annealing":
+        s = heur.PAPER_SCHEDULE
+        tour = heur.simulated_annealing(dist, identity, s.initial_temperature, s.cooling,
+                                        s.proposals_per_level, s.levels, seed)
+    elif method == "nearest":
+        tour = heur.nearest_neighbour(dist)
+    else:
+        tour = identity
+    if method == "return_to_origin":
+        length = 2.0 * float(dist[0, 1:].sum())
+    else:
+        length = float(heur.tour_length(dist, tour))
+    return _as_order(tour), length, bound
+
+
+def _cut_row(nodes: np.ndarray, ei: np.ndarray, ej: np.ndarray, m: int) -> np.ndarray:
+    """0/1 row over the edges with exactly one end in ``nodes``: the edges crossing the cut."""
+    inside = np.zeros(m, bool)
+    inside[nodes] = True
+    return (inside[ei] != inside[ej]).astype(float)
+
+
+def _exact(dist: np.ndarray, seed: int) -> tuple[np.ndarray, float, float]:
+    """Shortest closed tour over all nodes of ``dist``: (point order, length, lower bound), mm."""
+    m = dist.shape[0]
+    if m <= 3:
+        tour = np.arange(m)
+        length = float(heur.tour_length(dist, tour))
+        return _as_order(tour), length, length
+    upper = heur.iterated_local_search(dist, heur.near_neighbours(dist, NEAR_COUNT), heur.nearest_neighbour(dist),
+                                       kicks=50 * m, seconds=0.1, seed=seed)
+    ei, ej = np.triu_indices(m, k=1)
+    tour, bound = shortest_cycle_on_edges(dist, ei, ej, upper_tour=upper)
+    length = float(heur.tour_length(dist, tour))
+    return _as_order(tour), length, min(bound, length)
+
+
+def shortest_cycle_on_edges(
+    dist: np.ndarray, ei: np.ndarray, ej: np.ndarray, upper_tour: np.ndarray | None = None, seconds: float = np.inf
+) -> tuple[np.ndarray, float]:
+    """Shortest cycle through all nodes using only the edges (ei[k], ej[k]), by integer programming
+    with subtour cuts: (node order from node 0, the solver's lower bound in mm). On the complete
+    graph this is the optimal tour; on the union of a few good tours it is their best recombination
+    (tour merging).
+
+    With ``upper_tour`` (a cycle on these edges), the LP relaxation is first tightened with subtour
+    cuts (components, then the global minimum cut) and every edge whose reduced cost r_e exceeds
+    U − z_LP is dropped (U the upper tour's length): a tour using it costs at least z_LP + r_e > U,
+    so the optimum is among the remaining edges plus those of the upper tour."""
+    m = dist.shape[0]
+    cut_sides: list[np.ndarray] = []
+
+    def add_cut(nodes: np.ndarray) -> None:
+        cut_sides.append(nodes if 2 * len(nodes) <= m else np.setdiff1d(np.arange(m), nodes))
+
+    def incidence_of(ei: np.ndarray, ej: np.ndarray) -> sparse.csr_array:
+        k = ei.size
+        return sparse.csr_array((np.ones(2 * k), (np.concatenate([ei, ej]), np.tile(np.arange(k), 2))), shape=(m, k))
+
+    def cut_rows(ei: np.ndarray, ej: np.ndarray) -> sparse.csr_array:
+        return sparse.csr_array(np.vstack([_cut_row(side, ei, ej, m) for side in cut_sides]))
+
+    if upper_tour is not None:
+        cost = dist[ei, ej]
+        incidence = incidence_of(ei, ej)
+        for _ in range(10 * m):
+            lp = linprog(cost, A_ub=-cut_rows(ei, ej) if cut_sides else None,
+                         b_ub=-2.0 * np.ones(len(cut_sides)) if cut_sides else None,
+                         A_eq=incidence, b_eq=2.0 * np.ones(m), bounds=(0.0, 1.0), method="highs")
+            if lp.status != 0:
+                raise RuntimeError(f"tour LP failed: {lp.message}")
+            weights = np.zeros((m, m))
+            weights[ei, ej] = lp.x
+            weights += weights.T
+            parts = components(weights > 1e-9)
+            if len(parts) > 1:
+                for part in parts:
+                    add_cut(part)
+                continue
+            value, side = global_min_cut(weights)
+            if value < 2.0 - 1e-6:
+                add_cut(side)
+                continue
+            break
+        slack = float(heur.tour_length(dist, upper_tour)) - lp.fun
+        keep = lp.lower.marginals <= slack + 1e-9 * max(lp.fun, 1.0)
+        on_upper = np.zeros((m, m), bool)
+        on_upper[upper_tour, np.roll(upper_tour, -1)] = True
+        keep |= on_upper[ei, ej] | on_upper[ej, ei]
+        ei, ej = ei[keep], ej[keep]
+    cost = dist[ei, ej]
+    incidence = incidence_of(ei, ej)
+    # integer program: add the subtours of each integer solution until it is one cycle
+    t0 = time.perf_counter()
+    while True:
+        constraints = [LinearConstraint(incidence, 2.0, 2.0)]
+        if cut_sides:
+            constraints.append(LinearConstraint(cut_rows(ei, ej), 2.0, np.inf))
+        left = seconds - (time.perf_counter() - t0)
+        options = {"mip_rel_gap": 1e-9} | ({"time_limit": max(left, 0.01)} if np.isfinite(left) else {})
+        res = milp(cost, integrality=np.ones(cost.size), bounds=Bounds(0.0, 1.0), constraints=constraints,
+                   options=options)
+        if res.status != 0 or res.x is None:
+            raise RuntimeError(f"tour integer program failed: {res.message}")
+        chosen = res.x > 0.5
+        adjacency = np.zeros((m, m), bool)
+        adjacency[ei[chosen], ej[chosen]] = True
+        adjacency |= adjacency.T
+        parts = components(adjacency)
+        if len(parts) == 1:
+            break
+        for part in parts:
+            add_cut(part)
+    return _cycle_from_adjacency(adjacency), float(getattr(res, "mip_dual_bound", res.fun))
+
+
+def _cycle_from_adjacency(adjacency: np.ndarray) -> np.ndarray:
+    """Node order of the single cycle in a 0/1 adjacency matrix, from node 0 toward its lower-index
+    neighbour."""
+    m = adjacency.shape[0]
+    tour = np.empty(m, np.int64)
+    prev, here = -1, 0
+    for k in range(m):
+        tour[k] = here
+        nxt = [v for v in np.flatnonzero(adjacency[here]) if v != prev]
+        prev, here = here, nxt[0]
+    return tour

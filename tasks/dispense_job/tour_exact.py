@@ -26,8 +26,8 @@ from tasks.dispense_job.tour_bound import components, distance_matrix, global_mi
 EXACT_MAX_POINTS = 60  # the integer program is run up to this many points (home not counted)
 METHODS = ("optimal", "annealing", "nearest", "return_to_origin", "given_order")
 NEAR_COUNT = 8  # neighbour-list length of the local search
-LARGE_SEARCH_SECONDS = 3.0  # wall-time cap of the iterated local search beyond the exact range
-MERGED_RUNS = 4  # independent local searches recombined by tour merging
+LARGE_SEARCH_SECONDS = 2.4  # wall-time cap of the iterated local search beyond the exact range
+MERGED_RUNS = 8  # independent local searches recombined by tour merging
 MERGE_SECONDS = 1.0  # wall-time cap of the merging integer program
 
 

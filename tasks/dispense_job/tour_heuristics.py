@@ -120,30 +120,33 @@ def _reverse(tour: np.ndarray, pos: np.ndarray, i: int, j: int) -> None:
 @njit(**_COMPILED)
 def _move_segment(tour: np.ndarray, pos: np.ndarray, first: int, length: int, after: int, flip: bool) -> None:
     """Cut the ``length`` nodes starting at position ``first`` and put them back right after node
-    ``after`` (not in the segment), reversed when ``flip``."""
+    ``after`` (not in the segment), reversed when ``flip``. Shifts whichever side between the
+    segment and its new place is shorter, so a move between nearby positions costs little."""
     n = tour.shape[0]
     seg = np.empty(length, np.int64)
     for k in range(length):
         seg[k] = tour[(first + k) % n]
     if flip:
         seg = seg[::-1].copy()
-    rest = np.empty(n - length, np.int64)
-    m = 0
-    p = (first + length) % n
-    for _ in range(n - length):
-        rest[m] = tour[p]
-        m += 1
-        p = (p + 1) % n
-    out = 0
-    for k in range(n - length):
-        tour[out] = rest[k]
-        out += 1
-        if rest[k] == after:
-            for s in range(length):
-                tour[out] = seg[s]
-                out += 1
-    for k in range(n):
-        pos[tour[k]] = k
+    last = first + length - 1
+    ahead = (pos[after] - last) % n  # nodes from the segment's successor up to ``after``
+    behind = n - length - ahead  # nodes from after's successor up to the segment's predecessor
+    if ahead <= behind:  # pull the nodes ahead back over the segment, then write it behind them
+        for k in range(1, ahead + 1):
+            dst = (first + k - 1) % n
+            tour[dst] = tour[(last + k) % n]
+            pos[tour[dst]] = dst
+        start = first + ahead
+    else:  # push the nodes behind forward over the segment, then write it before them
+        for k in range(1, behind + 1):
+            dst = (last - k + 1) % n
+            tour[dst] = tour[(first - k) % n]
+            pos[tour[dst]] = dst
+        start = first - behind
+    for k in range(length):
+        p = (start + k) % n
+        tour[p] = seg[k]
+        pos[seg[k]] = p
 
 
 @njit(**_COMPILED)

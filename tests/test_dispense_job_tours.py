@@ -170,3 +170,14 @@ def test_bead_covers_the_usable_area_with_the_shortest_stroke():
     assert bead_time_s(np.stack([start, end])) == pytest.approx(np.linalg.norm(end - start) / PAPER_BEAD_SPEED_MM_S)
     with pytest.raises(ValueError, match="cannot cover"):
         bead_path(centre, angle, (4.0, 2.0), needle_mm=1.0)
+
+
+def test_an_exact_solve_out_of_time_falls_back_to_the_search_and_its_bound(monkeypatch):
+    from tasks.dispense_job import tour_exact
+
+    monkeypatch.setattr(tour_exact, "EXACT_SECONDS", 1e-6)
+    points = np.random.default_rng(8).uniform(0, 200, (40, 2))
+    tour = plan_tour(points, search_seconds=0.1)
+    assert sorted(tour.order.tolist()) == list(range(40))
+    assert tour.lower_bound_mm <= tour.length_mm
+    assert tour.length_mm == pytest.approx(_closed_length(points, tour.order))

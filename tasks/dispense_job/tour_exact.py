@@ -24,6 +24,7 @@ from tasks.dispense_job import tour_heuristics as heur
 from tasks.dispense_job.tour_bound import components, distance_matrix, global_min_cut, held_karp_bound
 
 EXACT_MAX_POINTS = 60  # the integer program is run up to this many points (home not counted)
+EXACT_SECONDS = 30.0  # beyond this the integer program gives up and the search's tour and bound stand
 METHODS = ("optimal", "annealing", "nearest", "return_to_origin", "given_order")
 NEAR_COUNT = 8  # neighbour-list length of the local search
 LARGE_SEARCH_SECONDS = 2.4  # wall-time cap of the iterated local search beyond the exact range
@@ -79,8 +80,14 @@ def plan_tour(
     if n == 0:
         return Tour(np.zeros(0, np.int64), 0.0, 0.0, True, method, time.perf_counter() - t0)
     dist = distance_matrix(np.vstack([home, pts]))
+    exact = None
     if method == "optimal" and n <= exact_max_points:
-        order, length, bound = _exact(dist, seed)
+        try:
+            exact = _exact(dist, seed)
+        except TimeoutError:  # a pathological layout: fall back to the search and its bound
+            exact = None
+    if exact is not None:
+        order, length, bound = exact
     else:
         order, length, bound = _by_heuristic(dist, method, seed, search_seconds)
     proven = length <= bound * (1.0 + 1e-9)
@@ -140,7 +147,7 @@ def _good_tour(dist: np.ndarray, seed: int, seconds: float) -> tuple[np.ndarray,
     ei, ej = np.unique(edges, axis=0).T
     try:
         merged, _ = shortest_cycle_on_edges(dist, ei, ej, seconds=MERGE_SECONDS)
-    except RuntimeError:  # the merge ran out of time: keep the best single run
+    except TimeoutError:  # the merge ran out of time: keep the best single run
         return best, bound.bound_mm
     if heur.tour_length(dist, merged) < heur.tour_length(dist, best):
         best = merged
@@ -188,7 +195,7 @@ def _exact(dist: np.ndarray, seed: int) -> tuple[np.ndarray, float, float]:
     upper = heur.iterated_local_search(dist, heur.near_neighbours(dist, NEAR_COUNT), heur.nearest_neighbour(dist),
                                        kicks=50 * m, seconds=0.1, seed=seed)
     ei, ej = np.triu_indices(m, k=1)
-    tour, bound = shortest_cycle_on_edges(dist, ei, ej, upper_tour=upper)
+    tour, bound = shortest_cycle_on_edges(dist, ei, ej, upper_tour=upper, seconds=EXACT_SECONDS)
     length = float(heur.tour_length(dist, tour))
     return _as_order(tour), length, min(bound, length)
 
@@ -258,6 +265,8 @@ def shortest_cycle_on_edges(
         options = {"mip_rel_gap": 1e-9} | ({"time_limit": max(left, 0.01)} if np.isfinite(left) else {})
         res = milp(cost, integrality=np.ones(cost.size), bounds=Bounds(0.0, 1.0), constraints=constraints,
                    options=options)
+        if res.status == 1:
+            raise TimeoutError(f"tour integer program stopped at its {seconds:g} s limit")
         if res.status != 0 or res.x is None:
             raise RuntimeError(f"tour integer program failed: {res.message}")
         chosen = res.x > 0.5

@@ -172,12 +172,22 @@ def test_bead_covers_the_usable_area_with_the_shortest_stroke():
         bead_path(centre, angle, (4.0, 2.0), needle_mm=1.0)
 
 
-def test_an_exact_solve_out_of_time_falls_back_to_the_search_and_its_bound(monkeypatch):
+def test_an_integer_program_out_of_time_falls_back_to_the_search_and_its_bound(monkeypatch):
+    """Both the exact solve and the tour merging give up when HiGHS reports its time limit."""
+    from types import SimpleNamespace
+
     from tasks.dispense_job import tour_exact
 
-    monkeypatch.setattr(tour_exact, "EXACT_SECONDS", 1e-6)
+    calls = []
+
+    def out_of_time(*args, **kwargs):
+        calls.append(kwargs["options"].get("time_limit"))
+        return SimpleNamespace(status=1, x=None, message="Time limit reached")
+
+    monkeypatch.setattr(tour_exact, "milp", out_of_time)
     points = np.random.default_rng(8).uniform(0, 200, (40, 2))
     tour = plan_tour(points, search_seconds=0.1)
+    assert len(calls) == 2  # the exact solve, then the merge of the search's runs
     assert sorted(tour.order.tolist()) == list(range(40))
     assert tour.lower_bound_mm <= tour.length_mm
     assert tour.length_mm == pytest.approx(_closed_length(points, tour.order))

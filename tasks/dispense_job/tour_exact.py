@@ -21,7 +21,7 @@ from scipy import sparse
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 
 from tasks.dispense_job import tour_heuristics as heur
-from tasks.dispense_job.tour_bound import components, distance_matrix, global_min_cut, held_karp_bound
+from tasks.dispense_job.tour_bound import components, distance_matrix, fast_blossoms, global_min_cut, held_karp_bound
 
 EXACT_MAX_POINTS = 60  # the integer program is run up to this many points (home not counted)
 EXACT_SECONDS = 30.0  # beyond this the integer program gives up and the search's tour and bound stand
@@ -209,58 +209,82 @@ def shortest_cycle_on_edges(
     (tour merging).
 
     With ``upper_tour`` (a cycle on these edges), the LP relaxation is first tightened with subtour
-    cuts (components, then the global minimum cut) and every edge whose reduced cost r_e exceeds
-    U − z_LP is dropped (U the upper tour's length): a tour using it costs at least z_LP + r_e > U,
-    so the optimum is among the remaining edges plus those of the upper tour."""
+    cuts (components, then the global minimum cut) and blossom inequalities, and every edge whose
+    reduced cost r_e exceeds U − z_LP is dropped (U the upper tour's length): a tour using it costs at
+    least z_LP + r_e > U, so the optimum is among the remaining edges plus those of the upper tour."""
     m = dist.shape[0]
-    cut_sides: list[np.ndarray] = []
+    subtours: list[np.ndarray] = []  # node sets S with x(δ(S)) ≥ 2
+    blossoms: list[tuple[np.ndarray, np.ndarray]] = []  # (handle, teeth) from tour_bound.fast_blossoms
 
-    def add_cut(nodes: np.ndarray) -> None:
-        cut_sides.append(nodes if 2 * len(nodes) <= m else np.setdiff1d(np.arange(m), nodes))
+    def add_subtour(nodes: np.ndarray) -> None:
+        subtours.append(nodes if 2 * len(nodes) <= m else np.setdiff1d(np.arange(m), nodes))
 
     def incidence_of(ei: np.ndarray, ej: np.ndarray) -> sparse.csr_array:
         k = ei.size
         return sparse.csr_array((np.ones(2 * k), (np.concatenate([ei, ej]), np.tile(np.arange(k), 2))), shape=(m, k))
 
-    def cut_rows(ei: np.ndarray, ej: np.ndarray) -> sparse.csr_array:
-        return sparse.csr_array(np.vstack([_cut_row(side, ei, ej, m) for side in cut_sides]))
+    def cut_rows(ei: np.ndarray, ej: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rows over the edges (ei, ej) and their bounds: lower ≤ row · x ≤ upper."""
+        rows = [_cut_row(side, ei, ej, m) for side in subtours]
+        lower = [2.0] * len(subtours)
+        upper = [np.inf] * len(subtours)
+        for handle, teeth in blossoms:
+            inside = np.zeros(m, bool)
+            inside[handle] = True
+            tooth = np.zeros((m, m), bool)
+            tooth[teeth[:, 0], teeth[:, 1]] = True
+            tooth |= tooth.T
+            rows.append((inside[ei] & inside[ej]).astype(float) + tooth[ei, ej])
+            lower.append(-np.inf)
+            upper.append(len(handle) + (len(teeth) - 1) / 2)
+        return np.vstack(rows), np.array(lower), np.array(upper)
 
     if upper_tour is not None:
-        cost = dist[ei, ej]
-        incidence = incidence_of(ei, ej)
+        upper_length = float(heur.tour_length(dist, upper_tour))
+        on_upper = np.zeros((m, m), bool)
+        on_upper[upper_tour, np.roll(upper_tour, -1)] = True
+        on_upper |= on_upper.T
         for _ in range(10 * m):
-            lp = linprog(cost, A_ub=-cut_rows(ei, ej) if cut_sides else None,
-                         b_ub=-2.0 * np.ones(len(cut_sides)) if cut_sides else None,
-                         A_eq=incidence, b_eq=2.0 * np.ones(m), bounds=(0.0, 1.0), method="highs")
+            cost = dist[ei, ej]
+            a_ub = b_ub = None
+            if subtours or blossoms:
+                rows, lower, upper = cut_rows(ei, ej)
+                flip = np.isfinite(lower)  # lower ≤ row·x becomes −row·x ≤ −lower
+                a_ub = sparse.csr_array(np.where(flip[:, None], -rows, rows))
+                b_ub = np.where(flip, -lower, upper)
+            lp = linprog(cost, A_ub=a_ub, b_ub=b_ub, A_eq=incidence_of(ei, ej), b_eq=2.0 * np.ones(m),
+                         bounds=(0.0, 1.0), method="highs")
             if lp.status != 0:
                 raise RuntimeError(f"tour LP failed: {lp.message}")
+            # reduced-cost fixing, valid after any round: z_LP bounds every tour from below
+            keep = lp.lower.marginals <= upper_length - lp.fun + 1e-9 * max(lp.fun, 1.0)
+            keep |= on_upper[ei, ej]
+            x, ei, ej = lp.x[keep], ei[keep], ej[keep]
             weights = np.zeros((m, m))
-            weights[ei, ej] = lp.x
+            weights[ei, ej] = x
             weights += weights.T
             parts = components(weights > 1e-9)
             if len(parts) > 1:
                 for part in parts:
-                    add_cut(part)
+                    add_subtour(part)
                 continue
             value, side = global_min_cut(weights)
             if value < 2.0 - 1e-6:
-                add_cut(side)
+                add_subtour(side)
+                continue
+            found = fast_blossoms(x, ei, ej, m)
+            if found:
+                blossoms.extend(found)
                 continue
             break
-        slack = float(heur.tour_length(dist, upper_tour)) - lp.fun
-        keep = lp.lower.marginals <= slack + 1e-9 * max(lp.fun, 1.0)
-        on_upper = np.zeros((m, m), bool)
-        on_upper[upper_tour, np.roll(upper_tour, -1)] = True
-        keep |= on_upper[ei, ej] | on_upper[ej, ei]
-        ei, ej = ei[keep], ej[keep]
     cost = dist[ei, ej]
     incidence = incidence_of(ei, ej)
     # integer program: add the subtours of each integer solution until it is one cycle
     t0 = time.perf_counter()
     while True:
         constraints = [LinearConstraint(incidence, 2.0, 2.0)]
-        if cut_sides:
-            constraints.append(LinearConstraint(cut_rows(ei, ej), 2.0, np.inf))
+        if subtours or blossoms:
+            constraints.append(LinearConstraint(*cut_rows(ei, ej)))
         left = seconds - (time.perf_counter() - t0)
         options = {"mip_rel_gap": 1e-9} | ({"time_limit": max(left, 0.01)} if np.isfinite(left) else {})
         res = milp(cost, integrality=np.ones(cost.size), bounds=Bounds(0.0, 1.0), constraints=constraints,
@@ -277,7 +301,7 @@ def shortest_cycle_on_edges(
         if len(parts) == 1:
             break
         for part in parts:
-            add_cut(part)
+            add_subtour(part)
     return _cycle_from_adjacency(adjacency), float(getattr(res, "mip_dual_bound", res.fun))
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from tasks.dispense_job import paper_points as paper
 from tasks.dispense_job.bead_path import PAPER_BEAD_SPEED_MM_S, bead_path, bead_time_s
-from tasks.dispense_job.tour_bound import distance_matrix, global_min_cut, held_karp_bound
+from tasks.dispense_job.tour_bound import distance_matrix, fast_blossoms, global_min_cut, held_karp_bound
 from tasks.dispense_job.tour_exact import METHODS, plan_tour, tour_path_mm
 from tasks.dispense_job.travel_time import segment_times_s, travel_time_s
 
@@ -20,18 +20,25 @@ def _closed_length(points: np.ndarray, order: np.ndarray, home=(0.0, 0.0)) -> fl
 
 
 def _brute_force_optimum(points: np.ndarray, home=(0.0, 0.0)) -> float:
-    best = np.inf
-    for perm in itertools.permutations(range(len(points))):
-        best = min(best, _closed_length(points, np.array(perm), home))
-    return best
+    """Shortest closed tour from home by trying every order of the points."""
+    perms = np.array(list(itertools.permutations(range(len(points)))))
+    nodes = np.vstack([home, points])
+    walks = np.hstack([np.zeros((len(perms), 1), int), perms + 1, np.zeros((len(perms), 1), int)])
+    return float(np.linalg.norm(np.diff(nodes[walks], axis=1), axis=2).sum(axis=1).min())
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", range(6))
 def test_exact_tour_matches_brute_force_on_small_instances(seed):
-    points = np.random.default_rng(seed).uniform(-50, 150, (7, 2))
+    """Uniform points (even seeds) and two tight clusters (odd seeds, whose LP relaxations are
+    fractional and take subtour and blossom cuts)."""
+    rng = np.random.default_rng(seed)
+    if seed % 2:
+        points = np.vstack([rng.normal((20.0, 20.0), 3.0, (4, 2)), rng.normal((90.0, 40.0), 3.0, (4, 2))])
+    else:
+        points = rng.uniform(-50, 150, (8, 2))
     tour = plan_tour(points, home_mm=(3.0, -4.0))
     assert tour.proven_optimal
-    assert sorted(tour.order.tolist()) == list(range(7))
+    assert sorted(tour.order.tolist()) == list(range(8))
     assert tour.length_mm == pytest.approx(_closed_length(points, tour.order, (3.0, -4.0)), rel=1e-12)
     assert tour.length_mm == pytest.approx(_brute_force_optimum(points, (3.0, -4.0)), rel=1e-9)
 
@@ -123,6 +130,23 @@ def test_held_karp_bound_and_min_cut_on_known_graphs():
     assert set(side.tolist()) in ({0, 1, 2}, {3, 4, 5})
 
 
+def test_fast_blossoms_cut_the_two_triangles_and_never_a_tour():
+    """Two triangles of half edges joined by three whole edges: degree 2 everywhere and connected,
+    yet no tour; each triangle is a blossom's handle with three teeth (lhs 4.5 > 3 + 1)."""
+    ei, ej = np.triu_indices(6, k=1)
+    x = np.zeros(ei.size)
+    for a, b, value in [(0, 1, 0.5), (1, 2, 0.5), (0, 2, 0.5), (3, 4, 0.5), (4, 5, 0.5), (3, 5, 0.5),
+                        (0, 3, 1.0), (1, 4, 1.0), (2, 5, 1.0)]:
+        x[(ei == a) & (ej == b)] = value
+    found = fast_blossoms(x, ei, ej, 6)
+    assert {frozenset(h.tolist()) for h, _ in found} == {frozenset({0, 1, 2}), frozenset({3, 4, 5})}
+    assert all(len(teeth) == 3 for _, teeth in found)
+    tour = np.zeros(ei.size)
+    for a, b in [(0, 1), (1, 2), (2, 5), (4, 5), (3, 4), (0, 3)]:
+        tour[(ei == a) & (ej == b)] = 1.0
+    assert fast_blossoms(tour, ei, ej, 6) == []
+
+
 def test_bad_points_are_named():
     with pytest.raises(ValueError, match="row 1"):
         plan_tour(np.array([[0.0, 1.0], [np.nan, 2.0]]))
@@ -191,3 +215,27 @@ def test_an_integer_program_out_of_time_falls_back_to_the_search_and_its_bound(m
     assert sorted(tour.order.tolist()) == list(range(40))
     assert tour.lower_bound_mm <= tour.length_mm
     assert tour.length_mm == pytest.approx(_closed_length(points, tour.order))
+
+
+def test_blossom_cuts_keep_the_optimum(monkeypatch):
+    """30-point layouts whose LP relaxation takes blossom cuts reach the same optimum as the exact
+    solve with subtour cuts only."""
+    from tasks.dispense_job import tour_exact
+
+    used = []
+
+    def counting(*args):
+        found = fast_blossoms(*args)
+        used.append(len(found))
+        return found
+
+    for seed in (5, 8, 12):
+        points = np.random.default_rng(seed).uniform(0, 300, (30, 2))
+        used.clear()
+        monkeypatch.setattr(tour_exact, "fast_blossoms", counting)
+        with_blossoms = plan_tour(points)
+        assert sum(used) > 0
+        monkeypatch.setattr(tour_exact, "fast_blossoms", lambda *args: [])
+        subtours_only = plan_tour(points)
+        assert with_blossoms.proven_optimal and subtours_only.proven_optimal
+        assert with_blossoms.length_mm == pytest.approx(subtours_only.length_mm, rel=1e-9)

@@ -1,6 +1,6 @@
 """Tour planning of the dispensing job: time and quality of the exact, heuristic and baseline tours.
 
-Run as ``python bench/bench_tours.py [--seeds 5]``. Points are drawn uniformly on a 300 × 300 mm
+Run as ``python bench/bench_tours.py [--seeds 20] [--large-seeds 5]``. Points are drawn uniformly on a 300 × 300 mm
 tray with home at its corner (0, 0). Every table is measured in this process, the nearest-neighbour
 tour of the same points being the baseline of the length ratios. Times are wall times of warm calls
 (the compiled loops are loaded once before timing) on whatever else the machine is running.
@@ -113,14 +113,14 @@ def paper_table() -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=5, help="random tray layouts per size")
+    parser.add_argument("--seeds", type=int, default=20, help="random layouts per size of the exact table")
+    parser.add_argument("--large-seeds", type=int, default=5, help="random layouts of each 500-point layout")
     args = parser.parse_args()
-    seeds = list(range(args.seeds))
     plan_tour(_points(12, 99), seed=0)  # load the compiled loops before timing
     for method in ("annealing", "nearest"):
         plan_tour(_points(12, 99), method=method)
-    exact_table(seeds)
-    large_table(seeds)
+    exact_table(list(range(args.seeds)))
+    large_table(list(range(args.large_seeds)))
     paper_table()
 
 

@@ -4,7 +4,7 @@ Run as ``python bench/bench_tours.py [--seeds 20] [--large-seeds 5]``. Points ar
 tray with home at its corner (0, 0). Every table is measured in this process, the nearest-neighbour
 tour of the same points being the baseline of the length ratios. Times are wall times of warm calls
 (the compiled loops are loaded once before timing) on whatever else the machine is running; the
-500-point table also gives the process's CPU time, which other jobs on the machine do not inflate.
+tables also give the process's CPU time, which other jobs on the machine do not inflate.
 
 1. exact tours for 10…60 points: time (median and worst over seeds), proven optimal, length / NN;
 2. 500 points, uniform and in a tray's pockets: time, the gap to the Held–Karp lower bound,
@@ -46,17 +46,21 @@ def _tray(seed: int, rows: int = 20, cols: int = 25, pitch_mm: float = 12.0, pla
 
 def exact_table(seeds: list[int]) -> None:
     print("1. exact tours (proven optimum), uniform points on a 300 mm tray, home at (0, 0)")
-    print(f"{'points':>6} {'median s':>9} {'worst s':>8} {'proven':>7} {'opt/NN median':>14} {'opt/NN worst':>13}")
+    print(f"{'points':>6} {'median s':>9} {'worst s':>8} {'cpu median':>10} {'cpu worst':>9} {'proven':>7} "
+          f"{'opt/NN median':>14} {'opt/NN worst':>13}")
     for n in (10, 20, 30, 40, 50, 60):
-        times, proven, ratios = [], [], []
+        times, cpus, proven, ratios = [], [], [], []
         for seed in seeds:
             pts = _points(n, seed)
+            cpu = time.process_time()
             tour = plan_tour(pts, seed=seed)
+            cpus.append(time.process_time() - cpu)
             nearest = plan_tour(pts, method="nearest")
             times.append(tour.seconds)
             proven.append(tour.proven_optimal)
             ratios.append(tour.length_mm / nearest.length_mm)
-        print(f"{n:>6} {np.median(times):>9.3f} {max(times):>8.3f} {sum(proven):>3}/{len(proven):<3} "
+        print(f"{n:>6} {np.median(times):>9.3f} {max(times):>8.3f} {np.median(cpus):>10.3f} {max(cpus):>9.3f} "
+              f"{sum(proven):>3}/{len(proven):<3} "
               f"{np.median(ratios):>14.3f} {max(ratios):>13.3f}")
 
 

@@ -3,13 +3,14 @@ dispensing point, proven optimal by integer programming up to ``EXACT_MAX_POINTS
 it the paper's simulated annealing, nearest neighbour and the return-to-origin path on the same points.
 
 The exact method is the Dantzig–Fulkerson–Johnson formulation on the complete graph of home + points
-(one binary per edge, every node of degree 2) solved by HiGHS (``scipy.optimize.milp``) with subtour
-cuts added as they are found: first on the LP relaxation (connected components of the support graph,
-then the global minimum cut), then on the integer solutions, until the solution is one cycle. That
-cycle is optimal for the full problem because every subtour constraint left out is satisfied by it.
-Beyond the exact range, iterated local search gives the tour and the Held–Karp bound
-(tour_bound.py) states how far from the optimum it can be.
-"""
+(one binary per edge, every node of degree 2) solved by HiGHS (``scipy.optimize.linprog``/``milp``):
+the LP relaxation is tightened with subtour cuts (components of the support graph, the global minimum
+cut) and blossom inequalities, edges whose reduced cost rules them out of any tour shorter than a
+known one are dropped, and the integer program on the rest takes the subtours of its solutions as
+further cuts until the solution is one cycle. That cycle is optimal for the full problem because
+every subtour constraint left out is satisfied by it. Beyond the exact range, iterated local search
+with tour merging gives the tour and the Held–Karp bound (tour_bound.py) states how far from the
+optimum it can be. docs/dispense-job-paths.md has the details."""
 
 from __future__ import annotations
 

@@ -28,7 +28,7 @@ EXACT_MAX_POINTS = 60  # the integer program is run up to this many points (home
 EXACT_SECONDS = 30.0  # beyond this the integer program gives up and the search's tour and bound stand
 METHODS = ("optimal", "annealing", "nearest", "return_to_origin", "given_order")
 NEAR_COUNT = 8  # neighbour-list length of the local search
-LARGE_SEARCH_SECONDS = 2.4  # wall-time cap of the local searches beyond the exact range (a safety net:
+LARGE_SEARCH_SECONDS = 10.0  # wall-time cap of the local searches beyond the exact range (a safety net:
 # the kick count ends them first on an unloaded core, and then the tour depends on the seed alone)
 MERGED_RUNS = 8  # independent local searches recombined by tour merging
 KICKS_PER_NODE = 20  # double-bridge kicks of each local search, per node (more changed no bench gap)

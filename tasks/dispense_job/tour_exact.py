@@ -31,7 +31,7 @@ NEAR_COUNT = 8  # neighbour-list length of the local search
 LARGE_SEARCH_SECONDS = 10.0  # wall-time cap of the local searches beyond the exact range (a safety net:
 # the kick count ends them first on an unloaded core, and then the tour depends on the seed alone)
 MERGED_RUNS = 8  # independent local searches recombined by tour merging
-KICKS_PER_NODE = 20  # double-bridge kicks of each local search, per node (more changed no bench gap)
+KICKS_PER_NODE = 20  # double-bridge kicks of each local search, per node
 MERGE_SECONDS = 1.0  # wall-time cap of the merging integer program
 
 

@@ -15,7 +15,7 @@ from numba import njit
 
 _COMPILED = {"cache": True, "nogil": True}
 _EPS = 1e-10  # mm; a move must gain more than this to count as an improvement
-KICK_WINDOW = 100  # positions spanned by one double-bridge kick (bench/bench_tours.py: 100 beat 30 and 50)
+KICK_WINDOW = 100  # positions spanned by one double-bridge kick
 
 
 @dataclass(frozen=True)

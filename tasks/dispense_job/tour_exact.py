@@ -32,7 +32,7 @@ LARGE_SEARCH_SECONDS = 10.0  # wall-time cap of the local searches beyond the ex
 # the kick count ends them first on an unloaded core, and then the tour depends on the seed alone)
 MERGED_RUNS = 8  # independent local searches recombined by tour merging
 KICKS_PER_NODE = 20  # double-bridge kicks of each local search, per node
-MERGE_SECONDS = 1.0  # wall-time cap of the merging integer program
+MERGE_SECONDS = 20.0  # wall-time cap of the merging integer program (a safety net like the one above)
 
 
 @dataclass(frozen=True)
@@ -130,8 +130,9 @@ def _good_tour(dist: np.ndarray, seed: int, seconds: float) -> tuple[np.ndarray,
     """A short tour and the Held–Karp bound (mm). Local search from nearest neighbour gives the upper
     bound for the bound's ascent; ``MERGED_RUNS`` iterated local searches (``seconds`` shared between
     them) on neighbour lists ranked by the penalised costs c_ij + π_i + π_j (closer to the optimal
-    tour's edges than plain distance) are then recombined by the integer program on the union of
-    their edges (tour merging), which is never longer than the best of them."""
+    tour's edges than plain distance), from nearest-neighbour tours begun at home and at random nodes
+    (different good tours share most edges but not all), are then recombined by the integer program on
+    the union of their edges (tour merging), which is never longer than the best of them."""
     n = dist.shape[0]
     start = heur.local_search(dist, heur.near_neighbours(dist, NEAR_COUNT), heur.nearest_neighbour(dist),
                               np.ones(n, np.bool_))
@@ -140,10 +141,12 @@ def _good_tour(dist: np.ndarray, seed: int, seconds: float) -> tuple[np.ndarray,
         return start, bound.bound_mm
     pi = bound.penalties_mm
     near = heur.near_neighbours(dist + pi[:, None] + pi[None, :], NEAR_COUNT)
+    firsts = np.random.default_rng(seed).integers(1, n, MERGED_RUNS - 1)
+    starts = [start] + [heur.nearest_neighbour(dist, int(first)) for first in firsts]
     tours = [
-        heur.iterated_local_search(dist, near, start, kicks=KICKS_PER_NODE * n, seconds=seconds / MERGED_RUNS,
+        heur.iterated_local_search(dist, near, begin, kicks=KICKS_PER_NODE * n, seconds=seconds / MERGED_RUNS,
                                    seed=seed * MERGED_RUNS + run)
-        for run in range(MERGED_RUNS)
+        for run, begin in enumerate(starts)
     ]
     best = min(tours, key=lambda t: heur.tour_length(dist, t))
     edges = np.sort(np.concatenate([np.stack([t, np.roll(t, -1)], axis=1) for t in tours]), axis=1)

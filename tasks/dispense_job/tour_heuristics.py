@@ -51,19 +51,21 @@ def tour_length(dist: np.ndarray, tour: np.ndarray) -> float:
 
 
 @njit(**_COMPILED)
-def nearest_neighbour(dist: np.ndarray) -> np.ndarray:
-    """From node 0, always go to the nearest node not yet visited (ties: the lowest index)."""
+def nearest_neighbour(dist: np.ndarray, first: int = 0) -> np.ndarray:
+    """From node ``first``, always go to the nearest node not yet visited (ties: the lowest index);
+    the cycle is returned starting at node 0."""
     n = dist.shape[0]
     tour = np.empty(n, np.int64)
     visited = np.zeros(n, np.bool_)
-    tour[0], visited[0] = 0, True
+    tour[0], visited[first] = first, True
     for k in range(1, n):
         here, best, nxt = tour[k - 1], np.inf, -1
         for v in range(n):
             if not visited[v] and dist[here, v] < best:
                 best, nxt = dist[here, v], v
         tour[k], visited[nxt] = nxt, True
-    return tour
+    zero = np.argmin(tour)
+    return np.concatenate((tour[zero:], tour[:zero]))
 
 
 @njit(**_COMPILED)

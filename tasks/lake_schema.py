@@ -284,6 +284,7 @@ def _job_area_columns() -> tuple[Column, ...]:
             _c("angle_deg", "float64", "deg", WORKPIECE, "long axis, counter-clockwise about z, [0, 180)"),
             _c("true_x_mm", "float64", "mm", WORKPIECE, "simulated trays: the true area centre (else NaN)"),
             _c("true_y_mm", "float64", "mm", WORKPIECE, "simulated trays: the true area centre"),
+            _c("true_angle_deg", "float64", "deg", WORKPIECE, "simulated trays: the true long axis, [0, 180)"),
             _c("map_error_um", "float64", "um", WORKPIECE,
                "simulated trays: |where the needle is sent − the true centre| (planar: through the true machine)"))
 
@@ -552,8 +553,8 @@ _TABLES = (
     TableSchema("dispense_inspection", 1, "ring × phase of the dispensing test",
                 "flows/dispense.py (fivecal dispense-test)", (PARTITION, "phase", "ring_id"), _dispense_columns()),
     TableSchema("dispense_areas", 1, "board × phase of a dispensing job's trays (partition: the calibration's "
-                "campaign)", "flows/dispense_job.py (fivecal dispense-job)", (PARTITION, "tray_id", "phase", "board_id"),
-                _job_area_columns()),
+                "campaign)", "flows/dispense_job.py (fivecal dispense-job)",
+                (PARTITION, "tray_id", "phase", "board_id"), _job_area_columns()),
     TableSchema("dispense_paths", 1, "tour method × phase of a dispensing job's trays",
                 "flows/dispense_job.py (fivecal dispense-job)", (PARTITION, "tray_id", "phase", "method"),
                 _job_path_columns()),

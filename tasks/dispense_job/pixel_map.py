@@ -26,6 +26,7 @@ import numpy as np
 from tasks.camera_model import CameraModel
 from tasks.compensation import compensate
 from tasks.dispensing.measure import pixels_to_surface
+from tasks.dispensing.tip import landing_points
 from tasks.dispensing.workpiece import Workpiece, dispensing_commands
 from tasks.error_model import ErrorModel
 from tasks.machine import Machine
@@ -99,14 +100,29 @@ def directions_to_workpiece(machine: Machine, model: ErrorModel | None, camera: 
 def commands_at(machine: Machine, model: ErrorModel | None, points_mm: np.ndarray, surface_z_mm: float,
                 standoff_mm: float, orientation: str = "full") -> np.ndarray:
     """(N, 5) commands (mm, deg) holding the needle's opening ``standoff_mm`` above workpiece points
-    (N, 2) mm on the surface z = ``surface_z_mm``, tool vertical (A = C = 0): nominal inverse
-    kinematics, then compensated on ``model`` (None: the nominal commands)."""
-    pts = np.asarray(points_mm, dtype=float).reshape(-1, 2)
-    piece = Workpiece(surface_z_mm=surface_z_mm, standoff_mm=standoff_mm)
-    nominal = dispensing_commands(machine, piece, pts, np.zeros((len(pts), 5)))
+    (N, 2) mm on the surface z = ``surface_z_mm``, tool vertical: the nominal machine's commands with
+    A = C = 0 (:func:`jog_over` on the nominal machine), then compensated by inverse kinematics of
+    ``model`` (None: the nominal commands)."""
+    nominal = jog_over(machine, None, points_mm, surface_z_mm, standoff_mm)
     if model is None:
         return nominal
     return compensate(machine, model, nominal, orientation).commands
+
+
+def jog_over(machine: Machine, model: ErrorModel | None, points_mm: np.ndarray, surface_z_mm: float,
+             standoff_mm: float, iterations: int = 4) -> np.ndarray:
+    """(N, 5) commands with A = C = 0 and Z at the nominal dispensing height (the needle's opening
+    ``standoff_mm`` above the surface over the workpiece origin), X and Y moved until the needle of the
+    machine ``model`` describes stands over each workpiece point (N, 2) mm: the paper's hand–eye
+    calibration, where the operator jogs X and Y only (fixed-point steps on the landing error)."""
+    target = np.asarray(points_mm, dtype=float).reshape(-1, 2)
+    piece = Workpiece(surface_z_mm=surface_z_mm, standoff_mm=standoff_mm)
+    z = dispensing_commands(machine, piece, np.zeros((1, 2)), np.zeros((1, 5)))[0, 2]
+    cmd = np.zeros((len(target), 5))
+    cmd[:, 2] = z
+    for _ in range(iterations):
+        cmd[:, :2] += target - landing_points(machine, model, cmd)
+    return cmd
 
 
 def check_travel(machine: Machine, commands: np.ndarray, labels) -> list[str]:

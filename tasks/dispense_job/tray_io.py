@@ -28,7 +28,7 @@ import pandas as pd
 from tasks.campaign_io import atomic_write_text
 from tasks.dispense_job.boards import TraySpec, apply_light, board_truth, paint_tray, place_boards
 from tasks.dispense_job.camera_view import camera_image, hand_eye_marks, project_to_camera
-from tasks.dispense_job.pixel_map import commands_at
+from tasks.dispense_job.pixel_map import jog_over
 from tasks.dispensing.workpiece import Workpiece, imaging_commands
 from tasks.machine import load_machine
 from tasks.simulate import read_truth
@@ -95,10 +95,10 @@ def simulate_tray(out_image: Path, campaign: Path, seed: int, boards: int = 20, 
     texture = paint_tray(spec, placed)
     camera = machine.cameras["camera1"]
     view = camera_image(texture.astype(np.float32), spec, machine, truth_model, camera, imaging, SURFACE_Z_MM)
-    lit = apply_light(_camera_spec(spec, camera), [], view.astype(np.float64), np.random.default_rng([seed, 34, shot]))
+    lit = apply_light(camera_spec(spec, camera), [], view.astype(np.float64), np.random.default_rng([seed, 34, shot]))
     marks = hand_eye_marks(spec)
     mark_px = project_to_camera(machine, truth_model, camera, imaging, marks, SURFACE_Z_MM)
-    jogged = commands_at(machine, truth_model, marks, SURFACE_Z_MM, STANDOFF_MM)
+    jogged = jog_over(machine, truth_model, marks, SURFACE_Z_MM, STANDOFF_MM)
     out_image = Path(out_image)
     out_image.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out_image), lit[..., ::-1])
@@ -111,7 +111,7 @@ def simulate_tray(out_image: Path, campaign: Path, seed: int, boards: int = 20, 
     return out_image
 
 
-def _camera_spec(spec: TraySpec, camera) -> TraySpec:
+def camera_spec(spec: TraySpec, camera) -> TraySpec:
     """The light's geometry on camera 1's sensor (fall-off about the sensor's centre; no glare spots,
     which need the boards' pixels: glare is left to the planar bench)."""
     return replace(spec, image_px=(camera.width_px, camera.height_px), glare_spots=0)

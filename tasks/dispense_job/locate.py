@@ -37,6 +37,8 @@ from skimage.morphology import thin
 
 from tasks.dispense_job.area_acceptance import AcceptanceRules, accept_area
 
+MIN_BOARD_SATURATION = 64  # of 255: a solder mask is above 0.3, the grey tray below 0.2 (after the median)
+
 
 def r_channel(rgb: np.ndarray) -> np.ndarray:
     """The R channel (uint8, contiguous) of an RGB image (H, W, 3) uint8."""
@@ -206,12 +208,15 @@ class BoardBlob:
 
 def find_boards(rgb: np.ndarray, rules: AcceptanceRules, mm_per_px: float) -> list[BoardBlob]:
     """Boards against the black tray: the colour saturation (max − min) / max (a solder mask is
-    coloured, the tray grey; a ratio, so the ring light's fall-off leaves it), 5 × 5 median, Otsu,
+    coloured, the tray grey; a ratio, so the ring light's fall-off leaves it), 5 × 5 median, Otsu (not
+    below :data:`MIN_BOARD_SATURATION`),
     blobs of at least half a board's area (``rules.board_mm``); each with its notch depth (convexity
     defects of its outline: a broken edge)."""
     hi, lo = rgb.max(axis=2).astype(np.float32), rgb.min(axis=2).astype(np.float32)
-    saturation = np.rint(255.0 * (hi - lo) / np.maximum(hi, 1.0)).astype(np.uint8)
-    binary, _ = binarise(cv2.medianBlur(saturation, 5))
+    saturation = cv2.medianBlur(np.rint(255.0 * (hi - lo) / np.maximum(hi, 1.0)).astype(np.uint8), 5)
+    binary, t = binarise(saturation)
+    if t < MIN_BOARD_SATURATION:  # no coloured board at all: Otsu split the grey tray's noise
+        binary = np.where(saturation > MIN_BOARD_SATURATION, 255, 0).astype(np.uint8)
     binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
     contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     min_px = 0.5 * rules.board_mm[0] * rules.board_mm[1] / mm_per_px ** 2

@@ -111,6 +111,30 @@ def test_a_blank_tray_has_no_board():
     assert truth.empty and found.boards == []
 
 
+def test_locate_command_prints_the_areas_and_writes_an_overlay(tmp_path):
+    import cv2
+    from typer.testing import CliRunner
+
+    from fivecal.cli import app
+
+    spec = TraySpec(rows=1, cols=2, image_px=(1000, 600), defect_rate=0.0)
+    image, truth, _ = render_tray(spec, 8)
+    path, overlay = tmp_path / "tray.png", tmp_path / "overlay.png"
+    cv2.imwrite(str(path), image[..., ::-1])
+    result = CliRunner().invoke(app, ["locate", str(path), "--overlay", str(overlay)])
+    assert result.exit_code == 0, result.output
+    assert result.output.count("accepted") == 2 and cv2.imread(str(overlay)).shape == image.shape
+    printed = np.array([[float(w) for w in line.split()[1:3]] for line in result.output.splitlines()
+                        if line.endswith("accepted")])
+    true_uv = truth[["area_u_px", "area_v_px"]].to_numpy(float)
+    assert all(np.min(np.linalg.norm(true_uv - p, axis=1)) < 0.1 for p in printed)
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((300, 400, 3), 25, np.uint8))
+    assert "no board found" in CliRunner().invoke(app, ["locate", str(blank)]).output
+    bad = CliRunner().invoke(app, ["locate", str(tmp_path / "missing.png")])
+    assert bad.exit_code == 2 and "missing.png: not a readable image" in bad.output
+
+
 def test_the_paper_table2_planar_map_reproduces_its_table9_conversions():
     m = fit_planar_map(PAPER_TABLE2_PX, PAPER_TABLE2_MM)
     table9_px = np.array([[629.28, 713.64], [1999.52, 1128.5], [1108.04, 1598.28], [264.48, 1550.5],

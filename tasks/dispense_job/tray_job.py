@@ -157,7 +157,7 @@ def _true_area(tray: Tray, xy_mm: np.ndarray) -> pd.DataFrame | None:
         d = np.linalg.norm(txy - p, axis=1) if len(txy) else np.array([np.inf])
         k = int(np.argmin(d))
         rows.append(t.iloc[k] if d[k] <= 3.0 else pd.Series(dtype=float))
-    return pd.DataFrame(rows).reset_index(drop=True)
+    return pd.DataFrame(rows).reindex(columns=t.columns).reset_index(drop=True)
 
 
 def run_tray(tray: Tray, located, cal: Calibration, planners: Planners, phases=PHASES, motion: Motion = Motion(),  # noqa: B008
@@ -186,21 +186,21 @@ def run_tray(tray: Tray, located, cal: Calibration, planners: Planners, phases=P
             for k in range(len(good)):
                 path = np.asarray(planners.bead_path(xy[k], float(ang[k]), np.array([length[k], width[k]])), float)
                 beads_cmd.append(pmap.commands(path))
-            outside = check_travel(cal.machine, np.vstack(beads_cmd), [
-                f"{tray.image_path.name} board {good.board_id.iloc[k]}" for k in range(len(good))
-                for _ in range(len(beads_cmd[k]))])
-            bad = {m.split(":")[0].split(" board ")[1] for m in outside}
-            if bad:
-                first = {b: next(m for m in outside if f" board {b}:" in m) for b in bad}
-                for b, msg in first.items():
-                    df.loc[df.board_id == b, ["ok", "reason"]] = [False, "outside the travel: " + msg.split(": ", 1)[1]]
-                if len(bad) == len(good):
-                    raise ValueError(f"{tray.image_path}: the tray is larger than the machine's travel: every board's "
-                                     f"bead leaves it ({outside[0]})")
-                keep = [k for k in range(len(good)) if good.board_id.iloc[k] not in bad]
-                beads_cmd = [beads_cmd[k] for k in keep]
-                centres_cmd = centres_cmd[keep]
-                good = good.iloc[keep]
+            outside = {}
+            for k, board in enumerate(good.board_id):
+                label = f"{tray.image_path.name} board {board}"
+                msgs = check_travel(cal.machine, beads_cmd[k], [label] * len(beads_cmd[k]))
+                if msgs:
+                    outside[board] = msgs[0]
+            if outside and len(outside) == len(good):
+                raise ValueError(f"{tray.image_path}: the tray is larger than the machine's travel: every board's "
+                                 f"bead leaves it ({next(iter(outside.values()))})")
+            for board, msg in outside.items():
+                df.loc[df.board_id == board, ["ok", "reason"]] = [False, "outside the travel: " + msg.split(": ", 1)[1]]
+            keep = [k for k, board in enumerate(good.board_id) if board not in outside]
+            beads_cmd = [beads_cmd[k] for k in keep]
+            centres_cmd = centres_cmd[keep]
+            good = good.iloc[keep]
         ids = good["board_id"].tolist()
         if cal.truth is not None and tray.truth is not None and ids:
             wp = pixels_to_workpiece(cal.machine, cal.model, cal.camera, tray.imaging_command,

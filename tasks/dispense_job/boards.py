@@ -131,9 +131,9 @@ class Board:
 
 
 def place_boards(spec: TraySpec, rng: np.random.Generator, boards: int | None = None) -> list[Board]:
-    """The boards of a tray: one per pocket (the first ``boards`` pockets row by row when given),
-    shifted by up to ``position_jitter_mm`` each way, any angle, a random mask colour (each channel
-    jittered by up to ±8), a defect with probability ``defect_rate``."""
+    """The boards of a tray: one per pocket (the first ``boards`` pockets row by row when given), any
+    angle, shifted by up to ``position_jitter_mm`` each way as far as the pocket's walls let it, a
+    random mask colour (each channel jittered by up to ±8), a defect with probability ``defect_rate``."""
     n = spec.rows * spec.cols if boards is None else boards
     if n > spec.rows * spec.cols:
         raise ValueError(f"{n} boards do not fit a tray of {spec.rows} × {spec.cols} pockets")
@@ -142,8 +142,13 @@ def place_boards(spec: TraySpec, rng: np.random.Generator, boards: int | None = 
     out = []
     for k in range(n):
         r, c = divmod(k, spec.cols)
-        x = (c - (spec.cols - 1) / 2) * spec.pocket_mm + rng.uniform(-1, 1) * spec.position_jitter_mm
-        y = ((spec.rows - 1) / 2 - r) * spec.pocket_mm + rng.uniform(-1, 1) * spec.position_jitter_mm
+        angle = float(rng.uniform(0, 360))
+        # the board stays inside its pocket (0.25 mm from the walls): the shift it has room for at this angle
+        t = np.deg2rad(angle)
+        ext = np.array([hx * abs(np.cos(t)) + hy * abs(np.sin(t)), hx * abs(np.sin(t)) + hy * abs(np.cos(t))])
+        room = np.clip(spec.pocket_mm / 2 - 0.25 - ext, 0.0, spec.position_jitter_mm)
+        x = (c - (spec.cols - 1) / 2) * spec.pocket_mm + rng.uniform(-1, 1) * room[0]
+        y = ((spec.rows - 1) / 2 - r) * spec.pocket_mm + rng.uniform(-1, 1) * room[1]
         mask = names[rng.integers(len(names))]
         rgb = tuple(int(np.clip(v + rng.integers(-8, 9), 0, 255)) for v in MASK_RGB[mask])
         defect = ""
@@ -157,7 +162,7 @@ def place_boards(spec: TraySpec, rng: np.random.Generator, boards: int | None = 
                 bite = (-hx, rng.uniform(-hy + 1, hy - 1), radius)
             else:
                 bite = (rng.uniform(-hx + 1, -2.0), hy if side == 1 else -hy, radius)
-        out.append(Board(f"b{k:02d}", r, c, float(x), float(y), float(rng.uniform(0, 360)), mask, rgb, defect,
+        out.append(Board(f"b{k:02d}", r, c, float(x), float(y), angle, mask, rgb, defect,
                          tuple(float(v) for v in bite)))
     return out
 
@@ -212,7 +217,8 @@ def paint_boards(spec: TraySpec, boards: list[Board], image: np.ndarray) -> None
 
 def apply_light(spec: TraySpec, boards: list[Board], image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """The ring light and the sensor on a painted planar image (float RGB): exposure, radial fall-off
-    (25 % at the corners), glare spots centred on boards, dust specks, Gaussian noise; uint8 RGB."""
+    (25 % at the corners), glare spots on boards (10–40 DN: a matte solder mask's sheen), dust specks,
+    Gaussian noise; uint8 RGB."""
     height, width = image.shape[:2]
     cu, cv = image_centre(spec)
     u = np.arange(width, dtype=np.float32)[None, :]
@@ -224,7 +230,7 @@ def apply_light(spec: TraySpec, boards: list[Board], image: np.ndarray, rng: np.
         b = boards[rng.integers(len(boards))]
         gu, gv = tray_to_pixels(spec, [[b.x_mm + rng.uniform(-6, 6), b.y_mm + rng.uniform(-6, 6)]])[0]
         sigma = rng.uniform(0.8, 2.5) / s
-        amplitude = rng.uniform(20, 60)
+        amplitude = rng.uniform(10, 40)
         a, b_ = int(max(gu - 4 * sigma, 0)), int(min(gu + 4 * sigma + 1, width))
         c, d = int(max(gv - 4 * sigma, 0)), int(min(gv + 4 * sigma + 1, height))
         if a < b_ and c < d:

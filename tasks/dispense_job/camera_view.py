@@ -14,7 +14,7 @@ import numpy as np
 
 from tasks import se3
 from tasks.camera_model import CameraModel, project_points
-from tasks.dispense_job.boards import TraySpec, pixels_to_tray, tray_to_pixels
+from tasks.dispense_job.boards import TRAY_RGB, TraySpec, pixels_to_tray, tray_to_pixels
 from tasks.error_model import ErrorModel
 from tasks.kinematics import forward
 from tasks.machine import Machine
@@ -55,8 +55,9 @@ def camera_image(texture: np.ndarray, spec: TraySpec, machine: Machine, model: E
     jj, ii = np.meshgrid(np.arange(camera.width_px, dtype=np.float32) / MAP_STEP_PX,
                          np.arange(camera.height_px, dtype=np.float32) / MAP_STEP_PX)
     maps = cv2.remap(tex, jj, ii, cv2.INTER_LINEAR)
+    # beyond the texture the tray's own black carries on
     return cv2.remap(texture, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                     borderValue=(0, 0, 0))
+                     borderValue=TRAY_RGB)
 
 
 def hand_eye_marks(spec: TraySpec, rows: int = 3, cols: int = 3) -> np.ndarray:

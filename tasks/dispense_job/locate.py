@@ -19,7 +19,7 @@ Each step is a function of its input image, so that it can be run and looked at 
    which moves the centre from the edge pixels' grid to the image's own edges.
 
 The acceptance of an area (aspect ratio and area) is tasks.dispense_job.area_acceptance; the boards
-(found on the brightest channel against the black tray) and the pairing of areas with boards are
+(found on the colour saturation against the grey tray) and the pairing of areas with boards are
 :func:`find_boards` and :func:`locate`.
 
 Frames: image pixels, u right, v down, origin at the centre of the top-left pixel. Angles in degrees,
@@ -37,7 +37,10 @@ from skimage.morphology import thin
 
 from tasks.dispense_job.area_acceptance import AcceptanceRules, accept_area
 
-MIN_BOARD_SATURATION = 64  # of 255: a solder mask is above 0.3, the grey tray below 0.2 (after the median)
+# of 255: the grey tray is below 0.2 after the median, every solder mask above 0.3 under the brightest glare;
+# a fixed threshold, not Otsu's: Otsu's splits a blank tray's noise, and with boards it sits so high that
+# glare on a dark mask falls below it and cuts a notch into the board's outline
+BOARD_SATURATION = 64
 
 
 def r_channel(rgb: np.ndarray) -> np.ndarray:
@@ -208,15 +211,14 @@ class BoardBlob:
 
 def find_boards(rgb: np.ndarray, rules: AcceptanceRules, mm_per_px: float) -> list[BoardBlob]:
     """Boards against the black tray: the colour saturation (max − min) / max (a solder mask is
-    coloured, the tray grey; a ratio, so the ring light's fall-off leaves it), 5 × 5 median, Otsu (not
-    below :data:`MIN_BOARD_SATURATION`),
+    coloured, the tray grey; a ratio, so the ring light's fall-off leaves it), 5 × 5 median, above
+    :data:`BOARD_SATURATION`,
     blobs of at least half a board's area (``rules.board_mm``); each with its notch depth (convexity
     defects of its outline: a broken edge)."""
     hi, lo = rgb.max(axis=2).astype(np.float32), rgb.min(axis=2).astype(np.float32)
-    saturation = cv2.medianBlur(np.rint(255.0 * (hi - lo) / np.maximum(hi, 1.0)).astype(np.uint8), 5)
-    binary, t = binarise(saturation)
-    if t < MIN_BOARD_SATURATION:  # no coloured board at all: Otsu split the grey tray's noise
-        binary = np.where(saturation > MIN_BOARD_SATURATION, 255, 0).astype(np.uint8)
+    # below 32 DN the ratio is noise over noise: such pixels count as grey
+    saturation = cv2.medianBlur(np.rint(255.0 * (hi - lo) / np.maximum(hi, 32.0)).astype(np.uint8), 5)
+    binary = np.where(saturation > BOARD_SATURATION, 255, 0).astype(np.uint8)
     binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
     contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     min_px = 0.5 * rules.board_mm[0] * rules.board_mm[1] / mm_per_px ** 2

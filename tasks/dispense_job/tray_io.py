@@ -76,7 +76,7 @@ def read_tray(image: Path) -> Tray:
                          f"mm_per_px") from None
     hand_eye = np.asarray(meta["hand_eye"], dtype=float).reshape(-1, 4) if meta.get("hand_eye") else None
     truth_path = image.with_suffix(".truth.csv")
-    truth = pd.read_csv(truth_path, keep_default_na=False, na_values=[""]) if truth_path.is_file() else None
+    truth = pd.read_csv(truth_path, dtype={"defect": str}) if truth_path.is_file() else None
     if truth is not None:
         truth["defect"] = truth["defect"].fillna("")
     return Tray(image.stem, image, cmd, surface, scale, hand_eye, meta.get("simulated"), truth)

@@ -215,7 +215,8 @@ def find_boards(rgb: np.ndarray, rules: AcceptanceRules, mm_per_px: float) -> li
     :data:`BOARD_SATURATION`,
     blobs of at least half a board's area (``rules.board_mm``); each with its notch depth (convexity
     defects of its outline: a broken edge)."""
-    hi, lo = rgb.max(axis=2).astype(np.float32), rgb.min(axis=2).astype(np.float32)
+    r, g, b = cv2.split(np.ascontiguousarray(rgb))
+    hi, lo = cv2.max(cv2.max(r, g), b).astype(np.float32), cv2.min(cv2.min(r, g), b).astype(np.float32)
     # below 32 DN the ratio is noise over noise: such pixels count as grey
     saturation = cv2.medianBlur(np.rint(255.0 * (hi - lo) / np.maximum(hi, 32.0)).astype(np.uint8), 5)
     binary = np.where(saturation > BOARD_SATURATION, 255, 0).astype(np.uint8)

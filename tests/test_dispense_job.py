@@ -187,6 +187,8 @@ def test_the_program_visits_every_board_once_and_times_travel_and_glue_apart():
     prog = program_rows(np.array([-1, 1, 0, 1, -1]), ["a", "b"], beads, np.zeros(5), motion)
     assert prog.board_id.tolist() == ["", "b", "b", "b", "b", "a", "a", "a", "a", ""]
     assert prog.dispense.sum() == 2
+    back = program_rows(np.array([1, 0]), ["a", "b"], beads, np.zeros(5), motion, home_between=True)
+    assert back.move.tolist().count("home") == 2 and back.move.iloc[5] == "home"  # after b, and at the end
 
     def dist(path, speed, accel):
         return float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum() / speed[0])

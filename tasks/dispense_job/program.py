@@ -36,10 +36,11 @@ class Motion:
 
 
 def program_rows(order: np.ndarray, board_ids: list[str], bead_commands: list[np.ndarray], home: np.ndarray,
-                 motion: Motion) -> pd.DataFrame:
+                 motion: Motion, home_between: bool = False) -> pd.DataFrame:
     """The program (see the module docstring). ``order``: the tour's board indices (a closed tour may
     start and end with home's index −1 or repeat the first; only board indices ≥ 0 are used, each once);
-    ``bead_commands[i]``: (k, 5) commands along board i's bead; ``home``: (5,) the home command."""
+    ``bead_commands[i]``: (k, 5) commands along board i's bead; ``home``: (5,) the home command;
+    ``home_between``: back home after every board (the paper's traditional path, Figure 15a)."""
     rows = []
 
     def add(board: str, move: str, cmd: np.ndarray, on: int, speed: float) -> None:
@@ -63,6 +64,8 @@ def program_rows(order: np.ndarray, board_ids: list[str], bead_commands: list[np
         end = bead[-1].copy()
         end[2] += motion.lift_mm
         add(board_ids[i], "retract", end, 0, motion.travel_mm_s)
+        if home_between and len(seen) < len(board_ids):
+            add("", "home", home, 0, motion.travel_mm_s)
     add("", "home", home, 0, motion.travel_mm_s)
     return pd.DataFrame(rows)
 

@@ -220,7 +220,8 @@ def run_tray(tray: Tray, located, cal: Calibration, planners: Planners, phases=P
         points = centres_cmd[:, :2]
         for method in TOUR_METHODS:
             tour = planners.plan_tour(points, home_mm=HOME_MM, method=method, seed=seed)
-            program = program_rows(np.asarray(tour.order), ids, beads_cmd, home, motion)
+            program = program_rows(np.asarray(tour.order), ids, beads_cmd, home, motion,
+                                   home_between=method == "return_to_origin")
             travel, disp = program_time_s(program, motion, planners.travel_time_s)
             paths_out.append({"tray_id": tray.tray_id, "phase": phase, "method": method, "points": len(ids),
                               "length_mm": float(tour.length_mm), "lower_bound_mm": float(tour.lower_bound_mm),

@@ -8,7 +8,8 @@ Each step is a function of its input image, so that it can be run and looked at 
    classes' order) spreads the dominant dark mode of a tray image over the whole grey range, and
    Otsu's threshold then falls inside that mode;
 2. :func:`smooth` — the 3 × 3 median filter (beside it the mean and Gaussian filters of Figure 3);
-3. :func:`binarise` — Otsu's threshold (eqs. 4–13);
+3. :func:`binarise` — Otsu's threshold (eqs. 4–13), computed over the boards' pixels and applied inside
+   them (§2.2.3: the search area reduced to the objects; :func:`board_region`);
 4. :func:`blobs` — morphology (opening, then closing) and blob analysis (connected components);
 5. :func:`sobel_edges` — the Sobel gradient magnitude of a blob (eqs. 14–16), thresholded;
 6. :func:`thin_edges` — thinning to one-pixel lines (the paper's Hilditch step; scikit-image's thinning);
@@ -64,10 +65,15 @@ def smooth(gray: np.ndarray, method: str = "median") -> np.ndarray:
     raise ValueError(f"unknown filter {method!r}: median, mean or gaussian")
 
 
-def binarise(gray: np.ndarray) -> tuple[np.ndarray, float]:
-    """(binary uint8 0/255, Otsu's threshold) of a uint8 image: the bright class is the foreground."""
-    t, out = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    return out, float(t)
+def binarise(gray: np.ndarray, region: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """(binary uint8 0/255, Otsu's threshold) of a uint8 image: the bright class is the foreground.
+    ``region`` (bool, the image's shape): Otsu's threshold from these pixels only, and the foreground
+    kept inside them (the paper's search area reduced to the boards)."""
+    if region is None or not region.any():
+        t, out = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        return out, float(t)
+    t, _ = cv2.threshold(gray[region].reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return np.where(region & (gray > t), 255, 0).astype(np.uint8), float(t)
 
 
 def blobs(binary: np.ndarray, min_px: int = 20) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -173,11 +179,13 @@ class Area:
     board: int = -1
 
 
-def find_areas(rgb: np.ndarray, rules: AcceptanceRules, mm_per_px: float) -> list[Area]:
+def find_areas(rgb: np.ndarray, rules: AcceptanceRules, mm_per_px: float, region: np.ndarray | None = None
+               ) -> list[Area]:
     """Steps 1–8 on a tray image (H, W, 3) uint8 RGB: every R-channel blob as a candidate area with
-    its rectangle and acceptance (aspect ratio and area at ``mm_per_px``)."""
+    its rectangle and acceptance (aspect ratio and area at ``mm_per_px``). ``region``: where to look
+    (bool mask, e.g. :func:`board_region`; None: everywhere)."""
     r_raw = r_channel(rgb)
-    binary, _ = binarise(smooth(r_raw))
+    binary, _ = binarise(smooth(r_raw), region)
     min_px = max(int(rules.min_blob_mm2 / mm_per_px ** 2), 4)
     labels, boxes = blobs(binary, min_px)
     out = []
@@ -238,6 +246,15 @@ def find_boards(rgb: np.ndarray, rules: AcceptanceRules, mm_per_px: float) -> li
     return out
 
 
+def board_region(boards: list[BoardBlob], shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the inside of the boards' outlines. Otsu's threshold of the R channel over the
+    whole tray splits the black tray from the dark masks when the boards are few; over the boards it
+    splits the masks from what is bright on them."""
+    mask = np.zeros(shape, np.uint8)
+    cv2.drawContours(mask, [b.outline.reshape(-1, 1, 2).astype(np.int32) for b in boards], -1, 255, cv2.FILLED)
+    return mask > 0
+
+
 @dataclass(frozen=True)
 class BoardResult:
     """One board's verdict: its blob, its accepted area (None when rejected), ok, and why not."""
@@ -263,7 +280,7 @@ def locate(rgb: np.ndarray, rules: AcceptanceRules | None = None, mm_per_px: flo
     than one. Candidate areas off every board are kept in ``areas`` with board −1."""
     rules = rules or AcceptanceRules()
     boards = find_boards(rgb, rules, mm_per_px)
-    areas = find_areas(rgb, rules, mm_per_px)
+    areas = find_areas(rgb, rules, mm_per_px, board_region(boards, rgb.shape[:2]))
     placed = []
     for a in areas:
         inside = [i for i, b in enumerate(boards)

@@ -5,6 +5,8 @@ A tray image ``NAME.png`` (camera 1, colour) comes with ``NAME.json``:
 * ``imaging_command``: the five commands (X, Y, Z mm, A, C deg) camera 1 took the image at;
 * ``surface_z_mm``: the height of the tray's surface above plate a's plane (workpiece frame);
 * ``mm_per_px``: the image scale on the tray (the acceptance rules are in mm);
+* ``home_xy_mm`` (optional): the X/Y commands of the needle's home, where every tour starts and ends
+  (default 0, 0; a simulated tray: over the tray's corner at −x, −y, as the paper's zero point);
 * ``hand_eye`` (optional): the paper's hand–eye pairs ``[u, v, X, Y]`` (pixel, machine command of the
   needle over the mark) for the planar map (§4.2, Table 2);
 * ``simulated`` (simulated trays only): the seed, the tray's layout (tasks.dispense_job.boards.TraySpec)
@@ -50,6 +52,7 @@ class Tray:
     hand_eye: np.ndarray | None
     simulated: dict | None
     truth: pd.DataFrame | None
+    home_xy_mm: tuple[float, float] = (0.0, 0.0)
 
     def read_rgb(self) -> np.ndarray:
         """The image as (H, W, 3) uint8 RGB; ValueError naming the file when it cannot be read."""
@@ -71,6 +74,9 @@ def read_tray(image: Path) -> Tray:
         meta = json.loads(side.read_text())
         cmd = np.asarray(meta["imaging_command"], dtype=float).reshape(5)
         surface, scale = float(meta["surface_z_mm"]), float(meta["mm_per_px"])
+        home = tuple(float(v) for v in meta.get("home_xy_mm", (0.0, 0.0)))
+        if len(home) != 2:
+            raise ValueError(f"home_xy_mm has {len(home)} numbers")
     except (KeyError, ValueError, TypeError, json.JSONDecodeError) as e:
         raise ValueError(f"{side}: malformed sidecar ({e}); it needs imaging_command (5 numbers), surface_z_mm, "
                          f"mm_per_px") from None
@@ -79,7 +85,7 @@ def read_tray(image: Path) -> Tray:
     truth = pd.read_csv(truth_path, dtype={"defect": str}) if truth_path.is_file() else None
     if truth is not None:
         truth["defect"] = truth["defect"].fillna("")
-    return Tray(image.stem, image, cmd, surface, scale, hand_eye, meta.get("simulated"), truth)
+    return Tray(image.stem, image, cmd, surface, scale, hand_eye, meta.get("simulated"), truth, home)
 
 
 def simulate_tray(out_image: Path, campaign: Path, seed: int, boards: int = 20, spec: TraySpec | None = None,
@@ -102,7 +108,10 @@ def simulate_tray(out_image: Path, campaign: Path, seed: int, boards: int = 20, 
     out_image = Path(out_image)
     out_image.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out_image), lit[..., ::-1])
+    w, h = spec.size_mm
+    corner = jog_over(machine, None, np.array([[-w / 2, -h / 2]]), SURFACE_Z_MM, STANDOFF_MM)[0, :2]
     meta = {"imaging_command": imaging.tolist(), "surface_z_mm": SURFACE_Z_MM, "mm_per_px": CAMERA_MM_PER_PX,
+            "home_xy_mm": corner.tolist(),
             "hand_eye": np.column_stack([mark_px, jogged[:, :2]]).tolist(),
             "simulated": {"campaign": str(Path(campaign).resolve()), "seed": seed, "boards": boards, "shot": shot,
                           "spec": spec.to_dict()}}

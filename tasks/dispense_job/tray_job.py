@@ -38,11 +38,10 @@ from tasks.dispense_job.program import Motion, program_rows, program_time_s
 from tasks.dispense_job.tray_io import STANDOFF_MM, Tray, camera_spec, tray_spec
 from tasks.dispensing.tip import landing_points
 from tasks.error_model import ErrorModel
-from tasks.machine import Machine
+from tasks.machine import Machine, load_machine
 
 PHASES = ("compensated", "nominal", "planar")
 TOUR_METHODS = ("optimal", "annealing", "nearest", "return_to_origin")
-HOME_MM = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -216,10 +215,11 @@ def run_tray(tray: Tray, located, cal: Calibration, planners: Planners, phases=P
         areas_out.append(df)
         if not ids:
             continue
-        home = np.array([HOME_MM[0], HOME_MM[1], centres_cmd[0, 2] + 20.0, 0.0, 0.0])
+        home_xy = tuple(float(v) for v in tray.home_xy_mm)
+        home = np.array([home_xy[0], home_xy[1], centres_cmd[0, 2] + motion.lift_mm, 0.0, 0.0])
         points = centres_cmd[:, :2]
         for method in TOUR_METHODS:
-            tour = planners.plan_tour(points, home_mm=HOME_MM, method=method, seed=seed)
+            tour = planners.plan_tour(points, home_mm=home_xy, method=method, seed=seed)
             program = program_rows(np.asarray(tour.order), ids, beads_cmd, home, motion,
                                    home_between=method == "return_to_origin")
             travel, disp = program_time_s(program, motion, planners.travel_time_s)
@@ -248,9 +248,10 @@ def _execute(tray: Tray, cal: Calibration, pmap: PhaseMap, program: pd.DataFrame
     lines = landed_beads(cal.machine, cal.truth, program)
     widths = draw_widths(list(lines), glue, rng)
     texture = paint_beads(spec, paint_tray(spec, placed), lines, widths, glue)
-    view = camera_image(texture.astype(np.float32), spec, cal.machine, cal.truth, cal.machine.cameras["camera1"],
-                        tray.imaging_command, tray.surface_z_mm)
-    rgb = apply_light(camera_spec(spec, cal.machine.cameras["camera1"]), [], view.astype(np.float64), rng)
+    sensor = load_machine("prototype").cameras["camera1"]  # the true camera at full resolution
+    view = camera_image(texture.astype(np.float32), spec, cal.machine, cal.truth, sensor, tray.imaging_command,
+                        tray.surface_z_mm)
+    rgb = apply_light(camera_spec(spec, sensor), [], view.astype(np.float64), rng)
     found = measure_beads(find_beads(rgb, int(0.5 / tray.mm_per_px ** 2)), pmap.points, tray.mm_per_px)
     paired = pair_beads(areas.rename(columns={"x_mm": "area_x_mm", "y_mm": "area_y_mm", "angle_deg": "area_angle_deg"}),
                         found)

@@ -222,6 +222,10 @@ def test_a_tray_without_its_sidecar_or_beyond_the_travel_is_refused_with_a_messa
     cal = Calibration("x", machine, errors, machine.cameras["camera1"])
     with pytest.raises(ValueError, match=r"larger than the machine's travel.*outside the travel"):
         run_tray(tray, locate(tray.read_rgb(), mm_per_px=0.045), cal, planners, ("compensated",))
+    blank, _, _ = render_tray(spec, 6, boards=0)
+    cv2.imwrite(str(path), blank[..., ::-1])
+    with pytest.raises(ValueError, match=r"far\.png: no board found"):
+        run_tray(tray, locate(tray.read_rgb(), mm_per_px=0.045), cal, planners, ("compensated",))
 
 
 

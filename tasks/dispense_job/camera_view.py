@@ -14,7 +14,7 @@ import numpy as np
 
 from tasks import se3
 from tasks.camera_model import CameraModel, project_points
-from tasks.dispense_job.boards import TRAY_RGB, TraySpec, pixels_to_tray, tray_to_pixels
+from tasks.dispense_job.boards import TRAY_RGB, TraySpec, tray_to_pixels
 from tasks.error_model import ErrorModel
 from tasks.kinematics import forward
 from tasks.machine import Machine
@@ -68,7 +68,3 @@ def hand_eye_marks(spec: TraySpec, rows: int = 3, cols: int = 3) -> np.ndarray:
     ys = np.linspace(-0.4 * h, 0.4 * h, rows)
     return np.array([[x, y] for y in ys for x in xs])
 
-
-def texture_pixel_to_workpiece(spec: TraySpec, uv: np.ndarray) -> np.ndarray:
-    """(N, 2) workpiece points (mm) of planar texture pixels (N, 2) (the tray frame is the workpiece frame)."""
-    return pixels_to_tray(spec, uv)

@@ -79,6 +79,9 @@ def main() -> None:
         e = ok[col]
         print(f"centre error, {name}: median {1e3 * e.median():.2f} µm, 95 % {1e3 * e.quantile(0.95):.2f} µm, "
               f"max {1e3 * e.max():.2f} µm over {len(e)} areas")
+    worst = ok.nlargest(3, "centre_error_mm")[["tray", "board_id", "centre_error_mm", "paper_centre_error_mm",
+                                                  "angle_error_deg", "length_mm", "width_mm"]]
+    print("largest refined centre errors (mm):\n" + worst.to_string(index=False))
     ratio = ok.centre_error_mm.max() / ok.paper_centre_error_mm.max()
     print(f"ratio refined / paper's rectangle (max error): {ratio:.3f}")
     da = ok.angle_error_deg.abs()

@@ -17,7 +17,8 @@ Each step is a function of its input image, so that it can be run and looked at 
    its centre (eqs. 29–30), size, angle and the blob's area in pixels (§2.4.2);
 8. :func:`refine_centre` — a step beyond the paper: the rectangle's four sides measured to a fraction
    of a pixel on the raw R channel (grey-level edge positions across each side, median per side),
-   which moves the centre from the edge pixels' grid to the image's own edges.
+   which moves the centre from the edge pixels' grid to the image's own edges; run twice, the second
+   time from the first's sides.
 
 The acceptance of an area (aspect ratio and area) is tasks.dispense_job.area_acceptance; the boards
 (found on the colour saturation against the grey tray) and the pairing of areas with boards are
@@ -201,7 +202,9 @@ def find_areas(rgb: np.ndarray, rules: AcceptanceRules, mm_per_px: float, region
         paper = min_area_rect(np.column_stack([uu + x0, vv + y0]))
         ok, reason = accept_area(paper.length_px * mm_per_px, paper.width_px * mm_per_px, count * mm_per_px ** 2,
                                  rules)
-        rect = refine_centre(r_raw, paper) if ok else paper
+        # twice: a speck merged into the blob moves the paper's side by pixels, and the first pass's
+        # inside samples then straddle the true edge; the second starts from the first's sides
+        rect = refine_centre(r_raw, refine_centre(r_raw, paper)) if ok else paper
         out.append(Area(rect, paper, int(count), ok, reason))
     return out
 

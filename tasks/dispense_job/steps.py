@@ -15,7 +15,7 @@ from tasks.dispense_job.tray_io import read_tray
 from tasks.dispense_job.tray_job import Calibration, Planners, TrayResult, run_tray
 from tasks.vision import content_key
 
-JOB_CODE_VERSION = "dispense-job-1"
+JOB_CODE_VERSION = "dispense-job-2"
 
 
 def _image_digest(path: str) -> str:

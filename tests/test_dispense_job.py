@@ -237,6 +237,7 @@ def test_dispense_job_flow_on_a_simulated_tray(calibrated_campaign, prefect_harn
     on properly calibrated campaigns, docs/dispense-job.md.)"""
     from flows.dispense_job import dispense_job
     from tasks.dispense_job.tray_io import simulate_tray
+    from tasks.lake_schema import TABLES, partition_problems
     from tasks.results_lake import read_table
 
     tray = simulate_tray(tmp_path / "trays" / "t1.png", calibrated_campaign.campaign, seed=7, boards=6,
@@ -260,5 +261,12 @@ def test_dispense_job_flow_on_a_simulated_tray(calibrated_campaign, prefect_harn
     comp = beads[beads.phase == "compensated"]
     assert len(comp) == 6 and comp.found.all() and comp.true_within_tolerance.all()
     assert (Path(summary["report"])).read_text().count("## ") >= 4
+    tables = summary["tables"]
+    assert partition_problems("dispense_areas", Path(tables["dispense_areas"])) == []
+    assert partition_problems("dispense_paths", Path(tables["dispense_paths"])) == []
+    assert partition_problems("dispense_beads", Path(tables["dispense_beads"])) == []
+    for table in ("dispense_areas", "dispense_paths", "dispense_beads"):
+        rows, keys = read_table(table, results, summary["campaign_id"]), list(TABLES[table].keys[1:])
+        assert not rows[keys].isna().any().any() and not rows.duplicated(keys).any(), table
     out = tmp_path / "reports" / summary["campaign_id"] / "t" / "dispense-job"
     assert (out / "program-t1-compensated.csv").is_file()

@@ -182,20 +182,26 @@ def run_tray(tray: Tray, located, cal: Calibration, planners: Planners, phases=P
             length, width = _sides_mm(pmap, good)
             df.loc[ok, "x_mm"], df.loc[ok, "y_mm"], df.loc[ok, "angle_deg"] = xy[:, 0], xy[:, 1], ang
             centres_cmd = pmap.commands(xy)
-            for k in range(len(good)):
-                path = np.asarray(planners.bead_path(xy[k], float(ang[k]), np.array([length[k], width[k]])), float)
-                beads_cmd.append(pmap.commands(path))
             outside = {}
             for k, board in enumerate(good.board_id):
                 label = f"{tray.image_path.name} board {board}"
+                try:
+                    path = np.asarray(planners.bead_path(xy[k], float(ang[k]), np.array([length[k], width[k]])),
+                                      float)
+                except ValueError as e:  # this board's bead cannot be planned: the others go on
+                    beads_cmd.append(centres_cmd[k:k + 1])
+                    outside[board] = f"no bead path ({e})"
+                    continue
+                beads_cmd.append(pmap.commands(path))
                 msgs = check_travel(cal.machine, beads_cmd[k], [label] * len(beads_cmd[k]))
                 if msgs:
-                    outside[board] = msgs[0]
-            if outside and len(outside) == len(good):
+                    outside[board] = "outside the travel: " + msgs[0].split(": ", 1)[1]
+            if outside and len(outside) == len(good) and all("outside the travel" in m for m in outside.values()):
+                first, why = next(iter(outside.items()))
                 raise ValueError(f"{tray.image_path}: the tray is larger than the machine's travel: every board's "
-                                 f"bead leaves it ({next(iter(outside.values()))})")
-            for board, msg in outside.items():
-                df.loc[df.board_id == board, ["ok", "reason"]] = [False, "outside the travel: " + msg.split(": ", 1)[1]]
+                                 f"bead leaves it (board {first}: {why})")
+            for board, why in outside.items():
+                df.loc[df.board_id == board, ["ok", "reason"]] = [False, why]
             keep = [k for k, board in enumerate(good.board_id) if board not in outside]
             beads_cmd = [beads_cmd[k] for k in keep]
             centres_cmd = centres_cmd[keep]

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from fivecal import dispense_cli, lake_cli, recalibrate_cli
+from fivecal import dispense_cli, dispense_job_cli, lake_cli, recalibrate_cli
 from fivecal.command_guard import GuardedTyper
 from fivecal.options import (
     DaskAddress,
@@ -430,6 +430,9 @@ app.command("recalibrate")(recalibrate_cli.recalibrate)
 app.command("serve-recalibration")(recalibrate_cli.serve_recalibration)
 app.command("dispense-test")(dispense_cli.dispense_test)
 app.command("inspect")(dispense_cli.inspect)
+app.command("dispense-job")(dispense_job_cli.dispense_job)
+app.command("locate")(dispense_job_cli.locate)
+app.command("simulate-tray")(dispense_job_cli.simulate_tray)
 
 
 def main() -> None:  # pragma: no cover

@@ -267,6 +267,60 @@ def _residual_columns() -> tuple[Column, ...]:
            "the noise level)"))
 
 
+def _job_area_columns() -> tuple[Column, ...]:
+    mapped = "machine X/Y command (mm) in phase planar, else the workpiece frame"
+    return (_s("tray_id", "the tray image's id (its file name without suffix)"),
+            _s("phase", "compensated | nominal (no compensation) | planar (the paper's Table 2 map)"),
+            _s("board_id", "board, numbered in the order the location found them (b00, b01, ...)"),
+            _c("ok", "bool", meaning="the board was found with exactly one accepted dispensing area"),
+            _s("reason", "why the board was rejected (broken edge, no dispensing area, ...); empty when ok"),
+            _c("u_px", "float64", "px", IMAGE, "area centre (refined rectangle), sensor pixels"),
+            _c("v_px", "float64", "px", IMAGE, "area centre, sensor pixels"),
+            _c("angle_px_deg", "float64", "deg", IMAGE, "long axis, counter-clockwise with v up, [0, 180)"),
+            _c("length_px", "float64", "px", IMAGE, "rectangle's long side"),
+            _c("width_px", "float64", "px", IMAGE, "rectangle's short side"),
+            _i("area_px", "the blob's pixel count (the paper's area, §2.4.2)", "px"),
+            _c("x_mm", "float64", "mm", WORKPIECE, f"area centre, {mapped}"),
+            _c("y_mm", "float64", "mm", WORKPIECE, f"area centre, {mapped}"),
+            _c("angle_deg", "float64", "deg", WORKPIECE, "long axis, counter-clockwise about z, [0, 180)"),
+            _c("true_x_mm", "float64", "mm", WORKPIECE, "simulated trays: the true area centre (else NaN)"),
+            _c("true_y_mm", "float64", "mm", WORKPIECE, "simulated trays: the true area centre"),
+            _c("true_angle_deg", "float64", "deg", WORKPIECE, "simulated trays: the true long axis, [0, 180)"),
+            _c("map_error_um", "float64", "um", WORKPIECE,
+               "simulated trays: |where the needle is sent − the true centre| (planar: through the true machine)"))
+
+
+def _job_path_columns() -> tuple[Column, ...]:
+    return (_s("tray_id", "the tray image's id"), _s("phase", "as in dispense_areas"),
+            _s("method", "optimal | annealing (the paper's SA) | nearest | return_to_origin (the traditional path)"),
+            _i("points", "boards in the tour"),
+            _c("length_mm", "float64", "mm", COMMAND, "closed tour from home over the area centres (X/Y)"),
+            _c("lower_bound_mm", "float64", "mm", COMMAND, "a lower bound of the shortest tour"),
+            _c("proven_optimal", "bool", meaning="the tour is proven shortest"),
+            _c("plan_s", "float64", "s", meaning="planning time", reproducible=False),
+            _c("travel_s", "float64", "s", meaning="travel time of the program with this order (per-axis speed, "
+                                                   "acceleration)"),
+            _c("dispense_s", "float64", "s", meaning="time with the glue on"),
+            _c("chosen", "bool", meaning="the order the program uses"))
+
+
+def _job_bead_columns() -> tuple[Column, ...]:
+    return (_s("tray_id", "the tray image's id"), _s("phase", "as in dispense_areas"), _s("board_id", "board"),
+            _c("found", "bool", meaning="a bead was found within 3 mm of the area's measured centre"),
+            _c("bead_x_mm", "float64", "mm", WORKPIECE, "measured bead centre"),
+            _c("bead_y_mm", "float64", "mm", WORKPIECE, "measured bead centre"),
+            _c("bead_length_mm", "float64", "mm", WORKPIECE, "measured bead length"),
+            _c("bead_width_mm", "float64", "mm", WORKPIECE, "measured bead width"),
+            _c("offset_along_mm", "float64", "mm", WORKPIECE, "measured bead − area centre, along the area's axis"),
+            _c("offset_across_mm", "float64", "mm", WORKPIECE, "measured bead − area centre, across it"),
+            _c("within_tolerance", "bool", meaning="both measured offsets within ±0.5 mm (§4.6)"),
+            _c("true_offset_along_mm", "float64", "mm", WORKPIECE, "true bead − true area centre, along"),
+            _c("true_offset_across_mm", "float64", "mm", WORKPIECE, "true bead − true area centre, across"),
+            _c("true_bead_length_mm", "float64", "mm", WORKPIECE, "true bead length"),
+            _c("true_bead_width_mm", "float64", "mm", WORKPIECE, "true bead width"),
+            _c("true_within_tolerance", "bool", meaning="both true offsets within ±0.5 mm"))
+
+
 _TABLES = (
     TableSchema("images", 1, "manifest row", "tasks/ingest_steps.py (fivecal ingest)", (PARTITION, "manifest_row"), (
         _i("manifest_row", "1-based data row of manifest.csv"),
@@ -500,6 +554,15 @@ _TABLES = (
         _s("rule", "abs+sig | abs | sig | within [(u unknown)/(no tolerance)] | reference | unavailable"))),
     TableSchema("dispense_inspection", 1, "ring × phase of the dispensing test",
                 "flows/dispense.py (fivecal dispense-test)", (PARTITION, "phase", "ring_id"), _dispense_columns()),
+    TableSchema("dispense_areas", 1, "board × phase of a dispensing job's trays (partition: the calibration's "
+                "campaign)", "flows/dispense_job.py (fivecal dispense-job)",
+                (PARTITION, "tray_id", "phase", "board_id"), _job_area_columns()),
+    TableSchema("dispense_paths", 1, "tour method × phase of a dispensing job's trays",
+                "flows/dispense_job.py (fivecal dispense-job)", (PARTITION, "tray_id", "phase", "method"),
+                _job_path_columns()),
+    TableSchema("dispense_beads", 1, "bead × phase of a dispensing job's simulated trays",
+                "flows/dispense_job.py (fivecal dispense-job)", (PARTITION, "tray_id", "phase", "board_id"),
+                _job_bead_columns()),
 )
 TABLES: dict[str, TableSchema] = {t.name: t for t in _TABLES}
 

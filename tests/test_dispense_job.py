@@ -1,22 +1,15 @@
 """The dispensing job (issue 34): boards, location, pixel maps, program, the flow on a simulated tray.
-
-The tour, travel time and bead path belong to tasks.dispense_job.tour_exact / travel_time / bead_path
-(another branch). Until they are on this branch, this file installs small stand-ins for them, here only
-(nearest-neighbour tour, distance over speed, a bead through the centre), so that the flow runs."""
+The tours, travel time and bead path are tested in tests/test_dispense_job_tours.py."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-import time
-import types
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tasks.dispense_job.bead_path import bead_path
 from tasks.dispense_job.boards import TraySpec, render_tray
 from tasks.dispense_job.camera_view import camera_image
 from tasks.dispense_job.locate import locate
@@ -29,59 +22,9 @@ from tasks.dispense_job.pixel_map import (
 )
 from tasks.dispense_job.program import Motion, program_rows, program_time_s
 from tasks.dispense_job.recognition import score_tray
+from tasks.dispense_job.tour_exact import plan_tour
+from tasks.dispense_job.travel_time import travel_time_s
 from tasks.dispensing.tip import landing_points
-
-
-def _install_standins() -> None:
-    """Stand-ins for the planners of the other half of the job, only when they are missing."""
-    if importlib.util.find_spec("tasks.dispense_job.tour_exact") is not None:
-        return
-
-    @dataclass(frozen=True)
-    class Tour:
-        order: np.ndarray
-        length_mm: float
-        lower_bound_mm: float
-        proven_optimal: bool
-        method: str
-        seconds: float
-
-    def plan_tour(points_mm, home_mm=(0.0, 0.0), method="optimal", seed=0):
-        t0 = time.perf_counter()
-        pts, home = np.asarray(points_mm, float), np.asarray(home_mm, float)
-        if method == "return_to_origin":
-            order = np.arange(len(pts))
-            length = float(2 * np.linalg.norm(pts - home, axis=1).sum())
-        else:
-            left, cur, order = list(range(len(pts))), home, []
-            while left:
-                k = min(left, key=lambda i: np.linalg.norm(pts[i] - cur))
-                order.append(k)
-                left.remove(k)
-                cur = pts[k]
-            order = np.array(order)
-            loop = np.vstack([home, pts[order], home])
-            length = float(np.linalg.norm(np.diff(loop, axis=0), axis=1).sum())
-        return Tour(order, length, 0.0, False, method, time.perf_counter() - t0)
-
-    def travel_time_s(path_mm, speed_mm_s, accel_mm_s2):
-        p = np.asarray(path_mm, float)
-        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() / speed_mm_s[0])
-
-    def bead_path(centre_mm, angle_deg, size_mm, margin_mm=0.25, needle_mm=2.2):
-        t = np.deg2rad(angle_deg)
-        half = max(size_mm[0] / 2 - margin_mm - needle_mm / 2, 0.0)
-        d = half * np.array([np.cos(t), np.sin(t)])
-        return np.array([np.asarray(centre_mm) - d, np.asarray(centre_mm) + d])
-
-    for name, attrs in (("tour_exact", {"plan_tour": plan_tour, "Tour": Tour}),
-                        ("travel_time", {"travel_time_s": travel_time_s}), ("bead_path", {"bead_path": bead_path})):
-        mod = types.ModuleType(f"tasks.dispense_job.{name}")
-        mod.__dict__.update(attrs)
-        sys.modules[mod.__name__] = mod
-
-
-_install_standins()
 
 
 def test_every_intact_board_is_found_to_10_um_and_every_defective_one_rejected_for_its_defect():
@@ -216,9 +159,7 @@ def test_a_tray_without_its_sidecar_or_beyond_the_travel_is_refused_with_a_messa
     path.with_suffix(".json").write_text(json.dumps({"imaging_command": [1000, 0, 19.8, 0, 0], "surface_z_mm": 19.8,
                                                      "mm_per_px": 0.045}))
     tray = read_tray(path)
-    mods = [sys.modules.get(f"tasks.dispense_job.{n}") or importlib.import_module(f"tasks.dispense_job.{n}")
-            for n in ("tour_exact", "travel_time", "bead_path")]
-    planners = Planners(mods[0].plan_tour, mods[1].travel_time_s, mods[2].bead_path)
+    planners = Planners(plan_tour, travel_time_s, bead_path)
     cal = Calibration("x", machine, errors, machine.cameras["camera1"])
     with pytest.raises(ValueError, match=r"larger than the machine's travel.*outside the travel"):
         run_tray(tray, locate(tray.read_rgb(), mm_per_px=0.045), cal, planners, ("compensated",))

@@ -104,11 +104,11 @@ def test_the_calibrated_map_sends_the_needle_onto_the_true_areas(machine, errors
     machine's errors move both, and only what differs between them is left)."""
     from tasks.dispense_job.boards import board_truth, paint_tray, place_boards
     from tasks.dispense_job.tray_io import SURFACE_Z_MM
-    from tasks.dispensing.workpiece import Workpiece, imaging_commands
+    from tasks.dispensing.workpiece import imaging_commands
 
     spec = TraySpec(rows=2, cols=3, defect_rate=0.0)
     placed = place_boards(spec, np.random.default_rng([5, 34]))
-    imaging = imaging_commands(machine, Workpiece(surface_z_mm=SURFACE_Z_MM), np.zeros((1, 2)))[0]
+    imaging = imaging_commands(machine, np.zeros((1, 2)), np.array([SURFACE_Z_MM]))[0]
     cam = machine.cameras["camera1"]
     view = camera_image(paint_tray(spec, placed).astype(np.float32), spec, machine, errors, cam, imaging, SURFACE_Z_MM)
     found = locate(np.clip(np.rint(view), 0, 255).astype(np.uint8), mm_per_px=0.045)

@@ -116,8 +116,8 @@ def jog_over(machine: Machine, model: ErrorModel | None, points_mm: np.ndarray, 
     machine ``model`` describes stands over each workpiece point (N, 2) mm: the paper's hand–eye
     calibration, where the operator jogs X and Y only (fixed-point steps on the landing error)."""
     target = np.asarray(points_mm, dtype=float).reshape(-1, 2)
-    piece = Workpiece(surface_z_mm=surface_z_mm, standoff_mm=standoff_mm)
-    z = dispensing_commands(machine, piece, np.zeros((1, 2)), np.zeros((1, 5)))[0, 2]
+    piece = Workpiece(standoff_mm=standoff_mm)
+    z = dispensing_commands(machine, piece, np.zeros((1, 2)), np.array([surface_z_mm]), np.zeros((1, 5)))[0, 2]
     cmd = np.zeros((len(target), 5))
     cmd[:, 2] = z
     for _ in range(iterations):

@@ -31,7 +31,7 @@ from tasks.campaign_io import atomic_write_text
 from tasks.dispense_job.boards import TraySpec, apply_light, board_truth, paint_tray, place_boards
 from tasks.dispense_job.camera_view import camera_image, hand_eye_marks, project_to_camera
 from tasks.dispense_job.pixel_map import jog_over
-from tasks.dispensing.workpiece import Workpiece, imaging_commands
+from tasks.dispensing.workpiece import imaging_commands
 from tasks.machine import load_machine
 from tasks.simulate import read_truth
 
@@ -96,7 +96,7 @@ def simulate_tray(out_image: Path, campaign: Path, seed: int, boards: int = 20, 
     spec = spec or TraySpec()
     machine = load_machine("prototype")
     truth_model = read_truth(Path(campaign))[1]
-    imaging = imaging_commands(machine, Workpiece(surface_z_mm=SURFACE_Z_MM), np.zeros((1, 2)))[0]
+    imaging = imaging_commands(machine, np.zeros((1, 2)), np.array([SURFACE_Z_MM]))[0]
     placed = place_boards(spec, np.random.default_rng([seed, 34]), boards)
     texture = paint_tray(spec, placed)
     camera = machine.cameras["camera1"]

@@ -235,6 +235,24 @@ class JointStep:
         cov_n = cho_solve((L, True), np.eye(L.shape[0])[:, : self.n_x])[: self.n_x]
         return cov_n * np.outer(self.steps, self.steps)
 
+    def residual_variance(self, measurements: Measurements, x: np.ndarray,
+                          profiles: dict[str, TabulatedProfile]) -> float:
+        """σ² of the joint fit at (x (P,) internal units, profiles): the whitened residual sum of
+        squares over its rows (the nuisance at its best, one linear step) over the residual degrees
+        of freedom 6n − tr(N⁻¹ JᵀJ), the trace counting what the penalised profiles, the constants
+        and the nuisance fit out of the data (Hastie & Tibshirani's effective degrees of freedom of
+        a linear smoother). The constant fit's own RSS / (6n₁ − P) counts only the P constants."""
+        meas = measurements.select(self.rows)
+        L = self.factor()
+        v = {a.axis: np.asarray(profiles[a.axis].values, float) / COMPONENT_SCALE for a in self.axes}
+        r = np.einsum("nij,nj->ni", self.W, pose_residuals(self.machine, self.model_at(x, profiles), meas)).ravel()
+        g = self.J.T @ r
+        for a in self.axes:
+            g[a.cols] += a.G.T @ (a.penalty_full @ v[a.axis].ravel())
+        after = r - self.J @ cho_solve((L, True), g)
+        dof = np.trace(cho_solve((L, True), self.JtJ))
+        return float(after @ after / (after.size - dof))
+
     def solve(self, measurements: Measurements, steps: int = GAUSS_NEWTON_STEPS
               ) -> tuple[np.ndarray, dict[str, TabulatedProfile]]:
         """Gauss–Newton from the build point on ``measurements`` (same rows as at build; the poses
@@ -298,8 +316,9 @@ def joint_refine(machine: Machine, base: ErrorModel, measurements: Measurements,
                  penalty_of: PdgeResult | None = None) -> tuple[PdgeResult, PigeFit, JointStep]:
     """The joint step (module docstring) from the alternation's ``pdge`` and ``fit``: the refined
     profiles, the constant fit over ``poses`` run from the joint solution with those profiles (its
-    covariance replaced by the joint one, which carries the profiles' noise), and the last step (for
-    the uncertainty propagation's re-fits).
+    covariance replaced by the joint one, which carries the profiles' noise, and its σ² by the joint
+    fit's, which counts the degrees of freedom the profiles take: :meth:`JointStep.residual_variance`),
+    and the last step (for the uncertainty propagation's re-fits).
 
     penalty_of: the extraction whose roughness sets the penalties (default ``pdge``'s own): the truth
     expressed in a fit's gauge takes the noisy fit's, as its alternation does."""
@@ -311,8 +330,9 @@ def joint_refine(machine: Machine, base: ErrorModel, measurements: Measurements,
         x, profiles = step.solve(measurements)
         pdge = with_profiles(pdge, profiles)
         fit = identify_pige(machine, replace(base, pdge={**base.pdge, **profiles}), poses, fit.specs, x0=x)
-    cov = step.covariance() * fit.fit.sigma2
+    sigma2 = step.residual_variance(measurements, fit.fit.x, profiles)
+    cov = step.covariance() * sigma2
     ok = fit.fit.identifiable
     cov[~ok, :] = np.nan
     cov[:, ~ok] = np.nan
-    return pdge, replace(fit, fit=replace(fit.fit, covariance=cov)), step
+    return pdge, replace(fit, fit=replace(fit.fit, covariance=cov, sigma2=sigma2)), step

@@ -81,10 +81,11 @@ def test_noise_free_calibration_reproduces_the_true_tip_poses(machine, errors):
     val = clean.stage("validation", camera="camera1")
     e = tip_pose_error(forward(machine, val.commands, result.model).tool_in_workpiece(),
                        forward(machine, val.commands, errors).tool_in_workpiece())
-    # one extraction + fit reproduces the truth to 0.02 µm; the rounds that re-extract the PDGEs with the
-    # fitted constants (needed on images: alternate()) leave up to 0.5 µm / 1.6″, see docs/calibrate.md
-    assert e.position_um.max() < 0.6 and e.orientation_arcsec.max() < 2.0, e.describe()
-    assert e.position_um.mean() < 0.3
+    # the alternation alone leaves 0.55 µm / 1.6″ (GCV smooths C's εx to 0.9″ RMS off the truth even on
+    # exact poses); the joint step, its penalty scaled by the whitening's variance, 0.10 µm / 0.6″ (0.04
+    # µm mean). Scaled by the sweep's scatter instead it left 1.6 µm / 8.1″ (docs/calibrate.md, step 3)
+    assert e.position_um.max() < 0.3 and e.orientation_arcsec.max() < 1.2, e.describe()
+    assert e.position_um.mean() < 0.1
 
 
 def test_a_pige_the_poses_do_not_excite_is_reported_unidentifiable(machine, errors):
@@ -343,9 +344,12 @@ def test_propagated_uncertainty_covers_pdge_noise_and_matches_a_full_refit_for_t
 
 
 def test_propagated_noise_is_scaled_by_the_birge_ratio_when_pose_covariances_understate_the_scatter(machine, errors):
-    """Poses drawn with covariance COV but reporting COV/4: the fit sees σ² ≈ 4, and the bootstrap
-    draws √σ² ≈ 2 times the reported covariance, so the noise part matches the one propagated with
-    the honest covariance (within the 16 draws' ±18 % each) and every parameter stays within 3u."""
+    """Poses drawn with covariance COV but reporting COV/4: the fit sees σ² ≈ 3.3 (4 on the tilts and
+    the depth, 2 on the lateral position, where the 0.1 µm floor is half the claimed variance; 0.94
+    with the honest covariance), and the bootstrap draws √σ² times the reported covariance, so the
+    noise part matches the one propagated with the honest covariance (within the 16 draws' ±18 %
+    each) and every parameter stays within 3u. (With σ² counting only the 20 constants, not the
+    degrees of freedom the profiles take, it read 2.9 and βAY fell at 3.03u.)"""
     from tasks.identification.uncertainty import propagate_uncertainty
 
     plan, _ = plan_campaign(machine, SMALL, 7)
@@ -368,8 +372,9 @@ def test_propagated_noise_draws_from_the_error_model_the_fit_weights_by(machine,
     """The fit whitens by C + C_floor (0.1 µm, 1″): no image is believed better than that. Poses
     measured as at full size (lateral 0.04 µm, depth 0.6 µm, tilt 7″) that also carry 0.1 µm of
     lateral error their covariance does not claim: the bootstrap must draw from the same
-    C + C_floor, so its noise part contains the LM's for the laterally fixed parameters (Z.ez0,
-    gamma_YX) and every parameter stays within 3u of the truth."""
+    C + C_floor, so its noise part matches the joint fit's σ²-scaled one for the laterally fixed
+    parameters (Z.ez0, gamma_YX), where drawing from C alone gives a third to a half of it, and every
+    parameter stays within 3u of the truth."""
     from tasks.identification.uncertainty import propagate_uncertainty
 
     plan, _ = plan_campaign(machine, SMALL, 7)
@@ -380,7 +385,9 @@ def test_propagated_noise_draws_from_the_error_model_the_fit_weights_by(machine,
     result = calibrate(machine, meas, errors)
     prop = propagate_uncertainty(machine, result, meas, draws=16)
     ratio = dict(zip(prop.names, prop.noise / prop.fit, strict=True))
-    assert ratio["Z.ez0"] > 1.0 and ratio["gamma_YX"] > 1.0, ratio  # 1.7, 1.6 (0.7, 0.8 drawn from C alone)
+    # measured 1.00, 1.30; drawn from C alone 0.37, 0.49. The fit's σ² counts the degrees of freedom the
+    # profiles take, so the fit part is unbiased and the expected ratio is 1, ±18 % over 16 draws
+    assert ratio["Z.ez0"] > 0.7 and ratio["gamma_YX"] > 0.7, ratio
     table = result.pige_table(prop)
     z = ((table.value - table.truth).abs() / table.uncertainty).to_numpy()
     assert np.all(z < 3.0), table.assign(z=z)[["name", "value", "truth", "uncertainty", "uncertainty_fit"]]
@@ -395,7 +402,7 @@ def test_noise_refits_are_the_joint_step_on_moved_poses_with_the_penalty_set_aga
     estimator is linear over the noise. And propagate_uncertainty's noise draws set the penalty again
     from their own sweeps (one extraction each), its reference re-fit holds it."""
     from tasks.identification import uncertainty
-    from tasks.identification.joint_fit import JointStep, position_variances
+    from tasks.identification.joint_fit import JointStep
     from tasks.identification.uncertainty import propagate_uncertainty
 
     plan, _ = plan_campaign(machine, SMALL, 7)
@@ -404,8 +411,8 @@ def test_noise_refits_are_the_joint_step_on_moved_poses_with_the_penalty_set_aga
     result, full = calibrate(machine, first), calibrate(machine, other)
     f = result.pige.fit
     step = JointStep.build(machine, result.pige.specs, result.model, f.x, f.jacobian, f.null_space,
-                           result.pdge.smoothing, position_variances(result.pdge.table), first)
-    x, _ = step.with_penalty(full.pdge.smoothing, position_variances(full.pdge.table)).solve(other)
+                           result.pdge.smoothing, first)
+    x, _ = step.with_penalty(full.pdge.smoothing).solve(other)
     assert np.max(np.abs(x - full.pige.fit.x) / f.uncertainty) < 0.5
 
     chosen = []

@@ -33,8 +33,16 @@ poses and of the other cameras' sweeps,
   in :func:`tasks.residuals.chain_constant_part`) and the line errors of the axis it sweeps (its
   gauge as seen by that camera), fitted to that camera's rows only.
 - P_j: the smoothing spline's roughness penalty per component, λ_jc K_j / s²_jc with the λ that the
-  sweep's GCV chose and s² the variance of a position's mean (the whitened form of the spline's
-  own criterion, so a sweep alone gives the alternation's profile).
+  sweep's GCV chose and s² the variance of a position's mean that the rows' own whitening implies
+  (:func:`sweep_variances`: the pose covariances, floor included, carried to the error motion).
+  That is the whitened form of the spline's own criterion, Σ (y − f)² / s² + (λ / s²) ∫ f''², so
+  a sweep alone gives the alternation's profile. The scale must be the whitening's, not the sweep's
+  scatter: the data rows are weighed by the stated covariances, and a penalty scaled by another
+  variance weighs the spline's prior against them by the ratio of the two. On exact poses (the
+  scatter is the profile's own step-to-step change, far below the stated noise) that ratio was
+  3.6·10⁴ on C's εx and 1.2·10⁶ on its δy: C's εx, smoothed by GCV's λ to 0.9″ RMS off the
+  truth, was held there, and the unpenalised profiles of X, Y and Z took up the five-axis poses'
+  residual (up to 5.9″ of X's εx, 1.6 µm at held-out tips; tests/test_identification.py).
 
 Gauss–Newton with J held, three steps, then the constant fit's LM from the result (its diagnostics
 and the Jacobian at the new point), twice: the system is rebuilt about the first solution, because
@@ -47,7 +55,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import pandas as pd
 from scipy.interpolate import CubicSpline
 from scipy.linalg import cho_solve
 
@@ -113,7 +120,7 @@ class _Axis:
     penalty: np.ndarray  # (p, p) Gᵀ P G
     penalty_full: np.ndarray  # (6K, 6K) P
     cols: slice
-    variance: np.ndarray  # (6,) variance of a position's mean (file units²)
+    variance: np.ndarray  # (6,) variance of a position's mean (file units²), from the whitening
 
 
 @dataclass
@@ -138,12 +145,11 @@ class JointStep:
     @classmethod
     def build(cls, machine: Machine, specs: list[ParamSpec], model: ErrorModel, x: np.ndarray,
               fit_jacobian: np.ndarray, null_space: np.ndarray, smoothing: dict[str, np.ndarray],
-              position_variance: dict[str, np.ndarray], measurements: Measurements) -> JointStep:
+              measurements: Measurements) -> JointStep:
         """About ``model`` (constants ``x`` (P,) internal units included, the PDGE profiles as
         TabulatedProfiles): fit_jacobian (6·n₁, P) of the constant fit over camera 1's
         identification poses (whitened); null_space (P, k) its unidentified directions (natural
-        units); smoothing {axis: (6,) λ}; position_variance {axis: (6,) variance of a position's
-        mean, file units²}."""
+        units); smoothing {axis: (6,) λ}."""
         rows = joint_rows(measurements)
         meas = measurements.select(rows)
         n = len(meas)
@@ -176,9 +182,9 @@ class JointStep:
             w = knot_weights(positions, q[:, AXIS_ORDER.index(axis)])  # (n, K)
             knots = np.einsum("nrc,nm->nrmc", S, w).reshape(6 * n, -1)  # (6n, 6K) knot-major
             G = gauge_complement(machine, axis, positions)
-            lam = np.nan_to_num(np.asarray(smoothing.get(axis, np.full(6, np.nan)), float), nan=0.0)
-            var = np.maximum(np.asarray(position_variance[axis], float), 1e-12)
-            P = np.kron(penalty_matrix(positions), np.diag(lam / var))
+            sweep = ((meas.table.stage == "pdge") & (meas.table.group == axis)).to_numpy()
+            var = sweep_variances(S[sweep], meas.table[axis].to_numpy(dtype=float)[sweep])
+            P = _penalty(positions, smoothing.get(axis), var)
             blocks.append(knots @ G)
             axes.append(_Axis(axis, positions, G, G.T @ P @ G, P, slice(col, col + G.shape[1]), var))
             col += G.shape[1]
@@ -202,15 +208,13 @@ class JointStep:
     def model_at(self, x: np.ndarray, profiles: dict[str, TabulatedProfile]) -> ErrorModel:
         return apply_parameters(replace(self.skeleton, pdge={**self.skeleton.pdge, **profiles}), self.specs, x)
 
-    def with_penalty(self, smoothing: dict[str, np.ndarray], variances: dict[str, np.ndarray]) -> JointStep:
-        """The same system with the penalties of the roughness ``smoothing`` ({axis: (6,) λ}) and the
-        position variances ``variances`` ({axis: (6,)}, file units²) of another extraction."""
+    def with_penalty(self, smoothing: dict[str, np.ndarray]) -> JointStep:
+        """The same system with the penalties of the roughness ``smoothing`` ({axis: (6,) λ}) of
+        another extraction (the variances are the whitening's, the same for moved poses)."""
         axes = []
         for a in self.axes:
-            lam = np.nan_to_num(np.asarray(smoothing.get(a.axis, np.full(6, np.nan)), float), nan=0.0)
-            var = np.maximum(np.asarray(variances[a.axis], float), 1e-12)
-            P = np.kron(penalty_matrix(a.positions), np.diag(lam / var))
-            axes.append(replace(a, penalty=a.G.T @ P @ a.G, penalty_full=P, variance=var))
+            P = _penalty(a.positions, smoothing.get(a.axis), a.variance)
+            axes.append(replace(a, penalty=a.G.T @ P @ a.G, penalty_full=P))
         return replace(self, axes=axes, _factor=None)
 
     def factor(self) -> np.ndarray:
@@ -230,6 +234,24 @@ class JointStep:
         L = self.factor()
         cov_n = cho_solve((L, True), np.eye(L.shape[0])[:, : self.n_x])[: self.n_x]
         return cov_n * np.outer(self.steps, self.steps)
+
+    def residual_variance(self, measurements: Measurements, x: np.ndarray,
+                          profiles: dict[str, TabulatedProfile]) -> float:
+        """σ² of the joint fit at (x (P,) internal units, profiles): the whitened residual sum of
+        squares over its rows (the nuisance at its best, one linear step) over the residual degrees
+        of freedom 6n − tr(N⁻¹ JᵀJ), the trace counting what the penalised profiles, the constants
+        and the nuisance fit out of the data (Hastie & Tibshirani's effective degrees of freedom of
+        a linear smoother). The constant fit's own RSS / (6n₁ − P) counts only the P constants."""
+        meas = measurements.select(self.rows)
+        L = self.factor()
+        v = {a.axis: np.asarray(profiles[a.axis].values, float) / COMPONENT_SCALE for a in self.axes}
+        r = np.einsum("nij,nj->ni", self.W, pose_residuals(self.machine, self.model_at(x, profiles), meas)).ravel()
+        g = self.J.T @ r
+        for a in self.axes:
+            g[a.cols] += a.G.T @ (a.penalty_full @ v[a.axis].ravel())
+        after = r - self.J @ cho_solve((L, True), g)
+        dof = np.trace(cho_solve((L, True), self.JtJ))
+        return float(after @ after / (after.size - dof))
 
     def solve(self, measurements: Measurements, steps: int = GAUSS_NEWTON_STEPS
               ) -> tuple[np.ndarray, dict[str, TabulatedProfile]]:
@@ -252,16 +274,24 @@ class JointStep:
         return x, {a.axis: TabulatedProfile(a.positions, v[a.axis] * COMPONENT_SCALE) for a in self.axes}
 
 
-def position_variances(table: pd.DataFrame) -> dict[str, np.ndarray]:
-    """{axis: (6,) variance of a position's mean (file units²)} from the ``pdge`` table's ``std_*``
-    columns: the pooled within-position variance over the mean count, the scale the smoothing
-    spline's roughness λ is relative to (:func:`tasks.identification.smoothing.smooth`)."""
-    out = {}
-    for axis, g in table.groupby("axis"):
-        count = g["n_images"].to_numpy(dtype=float)
-        out[str(axis)] = np.array([np.mean(g[f"std_{c}"].to_numpy(dtype=float) ** 2 * count) / count.mean()
-                                   for c in COMPONENT_COLUMNS])
-    return out
+def sweep_variances(S: np.ndarray, commands: np.ndarray) -> np.ndarray:
+    """(6,) variance of a position's mean of each error-motion component (file units²) that the
+    whitening implies for a sweep: S (m, 6, 6) the whitened residuals' response of its m images to
+    the six components (per file unit), commands (m,) the swept axis' command of each. An image's
+    covariance of the components is (SᵀS)⁻¹ (the pose covariance, floor included, carried to the
+    joint's error motion); its diagonal, averaged over the images, over the mean count of images
+    per position: the scale the smoothing spline's λ is relative to
+    (:func:`tasks.identification.smoothing.smooth` weighs positions by their count)."""
+    per_image = np.linalg.inv(np.einsum("mri,mrj->mij", S, S))
+    _, count = np.unique(commands, return_counts=True)
+    return np.diagonal(per_image, axis1=1, axis2=2).mean(axis=0) / count.mean()
+
+
+def _penalty(positions: np.ndarray, lam: np.ndarray | None, variance: np.ndarray) -> np.ndarray:
+    """(6K, 6K) P = K ⊗ diag(λ / s²) (knot-major), file units; a NaN or missing λ (a sweep too short
+    to smooth) penalises nothing."""
+    lam = np.nan_to_num(np.asarray(np.full(6, np.nan) if lam is None else lam, float), nan=0.0)
+    return np.kron(penalty_matrix(positions), np.diag(lam / variance))
 
 
 def with_profiles(pdge: PdgeResult, profiles: dict[str, TabulatedProfile]) -> PdgeResult:
@@ -286,23 +316,23 @@ def joint_refine(machine: Machine, base: ErrorModel, measurements: Measurements,
                  penalty_of: PdgeResult | None = None) -> tuple[PdgeResult, PigeFit, JointStep]:
     """The joint step (module docstring) from the alternation's ``pdge`` and ``fit``: the refined
     profiles, the constant fit over ``poses`` run from the joint solution with those profiles (its
-    covariance replaced by the joint one, which carries the profiles' noise), and the last step (for
-    the uncertainty propagation's re-fits).
+    covariance replaced by the joint one, which carries the profiles' noise, and its σ² by the joint
+    fit's, which counts the degrees of freedom the profiles take: :meth:`JointStep.residual_variance`),
+    and the last step (for the uncertainty propagation's re-fits).
 
-    penalty_of: the extraction whose roughness and position variances set the penalties (default
-    ``pdge``'s own). Noise-free poses (the truth expressed in a fit's gauge) take the noisy fit's:
-    their own variances are zero."""
+    penalty_of: the extraction whose roughness sets the penalties (default ``pdge``'s own): the truth
+    expressed in a fit's gauge takes the noisy fit's, as its alternation does."""
     penalty_of = penalty_of or pdge
-    variances = position_variances(penalty_of.table)
     for _ in range(iterations):
         f = fit.fit
         step = JointStep.build(machine, fit.specs, fit.model, f.x, f.jacobian, f.null_space, penalty_of.smoothing,
-                               variances, measurements)
+                               measurements)
         x, profiles = step.solve(measurements)
         pdge = with_profiles(pdge, profiles)
         fit = identify_pige(machine, replace(base, pdge={**base.pdge, **profiles}), poses, fit.specs, x0=x)
-    cov = step.covariance() * fit.fit.sigma2
+    sigma2 = step.residual_variance(measurements, fit.fit.x, profiles)
+    cov = step.covariance() * sigma2
     ok = fit.fit.identifiable
     cov[~ok, :] = np.nan
     cov[:, ~ok] = np.nan
-    return pdge, replace(fit, fit=replace(fit.fit, covariance=cov)), step
+    return pdge, replace(fit, fit=replace(fit.fit, covariance=cov, sigma2=sigma2)), step

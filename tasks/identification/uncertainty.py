@@ -141,20 +141,19 @@ def _linearised_refit(machine: Machine, result: CalibrationResult, measurements:
 def _joint_refit(machine: Machine, result: CalibrationResult, measurements: Measurements) -> Callable[..., tuple]:
     """The re-fit of a calibration that ended with the joint step (:mod:`tasks.identification.joint_fit`):
     that step's Gauss–Newton from ``result``'s solution on the moved poses, its penalties held or
-    (reselect_smoothing) set again from the moved sweeps (GCV's roughness and the positions' variance),
-    as the calibration sets them."""
-    from tasks.identification.joint_fit import JointStep, position_variances
+    (reselect_smoothing) set again from the moved sweeps (GCV's roughness), as the calibration sets them."""
+    from tasks.identification.joint_fit import JointStep
 
     fit = result.pige.fit
     step = JointStep.build(machine, result.pige.specs, result.model, fit.x, fit.jacobian, fit.null_space,
-                           result.pdge.smoothing, position_variances(result.pdge.table), measurements)
+                           result.pdge.smoothing, measurements)
     extraction = result.extraction_model or ErrorModel()
 
     def refit(m: Measurements, reselect_smoothing: bool = False) -> tuple:
         solver = step
         if reselect_smoothing:
             again = extract_pdges(machine, extraction, m)
-            solver = step.with_penalty(again.smoothing, position_variances(again.table))
+            solver = step.with_penalty(again.smoothing)
         x, profiles = solver.solve(m)
         return x, solver.model_at(x, profiles)
 

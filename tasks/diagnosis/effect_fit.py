@@ -22,11 +22,13 @@ extraction and eq. 22 are two separate estimators:
 3. repeat from 1 with the fitted constants and θ in the extraction's model (the extraction reads
    everything but the swept axis from the model) until no parameter moves by more than 0.1 of its
    standard uncertainty (at most ``rounds`` times);
-4. if no effect parameter is identifiable (all stay at their start), the fit is that model's
-   calibration: the joint step of :mod:`tasks.identification.joint_fit` closes it, as it closes
-   :func:`~tasks.identification.pige_identification.calibrate`, the effects reported unidentifiable
-   as the coupled fit found them. A fit that identifies an effect keeps the alternation's solution
-   (the diagnosis is linearised about the alternation, :func:`tasks.diagnosis.linearisation.alternation_of`).
+4. the joint step of :mod:`tasks.identification.joint_fit` closes the fit, as it closes
+   :func:`~tasks.identification.pige_identification.calibrate`, the effects' parameters refined with
+   the profiles and constants (unidentifiable effects reported as the coupled fit found them); the
+   alternation's solution is kept beside it (``alternation``: the diagnosis is linearised about it,
+   :func:`tasks.diagnosis.linearisation.alternation_of`). A fitted effect that changes a camera's
+   imaging keeps the alternation's solution as the result: the joint step models the poses as
+   measured, not corrected for the camera effect.
 
 An effect with a phase (pitch_cyclic, encoder harmonics) is first fitted as two copies at phases
 φ₀ and φ₀ + 90° whose amplitudes are linear (:func:`tasks.diagnosis.effect_params.combine_quadrature`),

@@ -383,3 +383,22 @@ def test_with_nothing_accepted_the_verdict_names_what_the_residual_follows():
     assert sentence.index("approach_X (cam_dy_um spans 7.9 um") < sentence.index("time_s (cam_dy_um spans 3.6 um")
     assert "Z_mm" not in sentence and "A_deg" not in sentence and "cam_rx_arcsec" not in sentence
     assert residual_follows_sentence(trends[trends.camera == "camera2"], "camera1") is None
+    assert "3 survive the false-discovery control" in sentence
+
+
+def test_panels_flagged_as_often_as_chance_flags_them_name_no_variable():
+    """100 panels of a campaign that lacks nothing: five p-values at or under 5 %, as chance gives; the
+    smallest (0.01) does not survive the false-discovery control over the hundred."""
+    import pandas as pd
+
+    from tasks.diagnosis.verdict import residual_follows_sentence
+
+    p = np.linspace(0.01, 1.0, 100)
+    trends = pd.DataFrame({"camera": "camera1", "variable": [f"v{i % 7}" for i in range(100)],
+                           "component": "cam_dx_um", "bins": 10, "span": 0.3, "statistic": 1.0, "p_value": p,
+                           "significant": p <= 0.05})
+    sentence = residual_follows_sentence(trends, "camera1")
+    assert sentence.startswith("The camera1 residual follows no variable beyond noise (5 of its 100 trend tests")
+    assert "v0 (" not in sentence
+    trends.loc[0, "p_value"] = 1e-8  # one strong trend among them is named
+    assert "v0 (cam_dx_um spans 0.3 um, p = 1e-08)" in residual_follows_sentence(trends, "camera1")

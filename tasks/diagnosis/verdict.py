@@ -15,10 +15,12 @@ over its parameter values (e.g. ``"time with a {period_s} s period"``).
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import false_discovery_control
 
 from tasks.diagnosis.candidates import Candidate
 from tasks.diagnosis.linearisation import Linearisation
 from tasks.kinematics import forward
+from tasks.residual_trends import ALPHA
 
 ORDINALS = {1: "1st", 2: "2nd", 3: "3rd"}
 
@@ -87,17 +89,28 @@ def explained_sentence(camera: str, direction: str, cand: Candidate, spec: str, 
 
 def residual_follows_sentence(trends, camera: str, limit: int = 5) -> str | None:
     """When no candidate is accepted: the variables ``camera``'s residual follows, from the trend tests
-    of :func:`tasks.residual_trends.trend_tests` (``trends``, the ``residual_trends`` table): the
-    significant panels, smallest p-value first, one per variable, at most ``limit``, each with its
-    component and the span of its bin means (µm or arcsec). None when no panel is significant. What
-    the residual follows is where an effect of one's own would act (docs/user-effects.md)."""
-    t = trends[(trends["camera"] == camera) & trends["significant"]]
-    if t.empty:
+    of :func:`tasks.residual_trends.trend_tests` (``trends``, the ``residual_trends`` table). A panel
+    counts when it survives the Benjamini–Hochberg false-discovery control at :data:`ALPHA` over all of
+    the camera's panels (one in twenty of them is flagged at 5 % by chance alone on a campaign that
+    lacks nothing); those are named smallest p-value first, one per variable, at most ``limit``, each
+    with its component and the span of its bin means (µm or arcsec). When panels are flagged at 5 % but
+    none survives, the sentence says the residual follows nothing beyond chance. None when no panel is
+    flagged. What the residual follows is where an effect of one's own would act (docs/user-effects.md)."""
+    mine = trends[(trends["camera"] == camera) & np.isfinite(trends["p_value"].astype(float))]
+    flagged = int(mine["significant"].sum())
+    if not flagged:
         return None
+    q = false_discovery_control(mine["p_value"].to_numpy(float))
+    t = mine[q <= ALPHA]
+    counts = (f"{flagged} of its {len(mine)} trend tests flagged at {ALPHA:.0%}, chance alone flags about "
+              f"{ALPHA * len(mine):.0f}")
+    if t.empty:
+        return (f"The {camera} residual follows no variable beyond noise ({counts}; none survives the "
+                f"false-discovery control over the tests).")
     t = t.sort_values(["p_value", "statistic"], ascending=[True, False], kind="stable")
     top = t.drop_duplicates("variable").head(limit)
     parts = [f"{r.variable} ({r.component} spans {r.span:.3g} {r.component.rsplit('_', 1)[-1]}, "
              f"{p_text(r.p_value)})" for r in top.itertuples(index=False)]
-    return (f"What the {camera} residual follows most (trend tests at 5 %): {'; '.join(parts)}. "
-            f"An effect that depends on these and that no catalogue family describes can be written as a "
-            f"family of one's own (docs/user-effects.md).")
+    return (f"What the {camera} residual follows most ({counts}; {len(t)} survive the false-discovery control): "
+            f"{'; '.join(parts)}. An effect that depends on these and that no catalogue family describes can be "
+            f"written as a family of one's own (docs/user-effects.md).")

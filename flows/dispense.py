@@ -26,9 +26,9 @@ import pandas as pd
 from prefect import flow, get_run_logger
 
 import fivecal
-from tasks.calibration_steps import compensate_task, identify_task
+from flows.lake_calibration import calibration_from_lake
+from tasks.calibration_steps import compensate_task
 from tasks.compensation import desired_tip_poses
-from tasks.detector_comparison import intrinsics_from_table
 from tasks.dispensing.capture import CAMERA, plan_rows, write_plan
 from tasks.dispensing.inspection import load_config
 from tasks.dispensing.measure import dispense_rows, full_resolution, load_capture_manifest
@@ -36,16 +36,10 @@ from tasks.dispensing.report import write_dispensing_report
 from tasks.dispensing.steps import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
 from tasks.dispensing.workpiece import Workpiece, imaging_commands, ring_layout
-from tasks.effects import recorded_effects
-from tasks.error_model import ErrorModel
-from tasks.identification.measurements import assemble_measurements
-from tasks.ingest import load_campaign_metadata
 from tasks.machine import load_machine
 from tasks.results_lake import read_provenance, read_table, write_partition
-from tasks.simulate import read_truth
 from tasks.verification import modelled_errors, predicted_by, verification_table
-from tasks.verification_capture import is_simulated
-from tasks.vision import content_key, nominal_machine
+from tasks.vision import content_key
 
 PHASES = ("nominal", "compensated", "check")
 
@@ -104,24 +98,10 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     config = load_config(inspection_config)
     folder = Path(campaign).resolve()
     root = None if results_root is None else Path(results_root)
-    metadata = load_campaign_metadata(folder)
-    campaign_id = metadata["campaign_id"]
-    try:
-        calib_prov = read_provenance("pige", campaign_id, root)
-    except (FileNotFoundError, OSError) as e:
-        raise ValueError(f"campaign {campaign_id} has no calibration in the lake ({e}): run fivecal calibrate "
-                         f"first") from None
-    machine = nominal_machine(metadata)
-    images, pose_table = read_table("images", root, campaign_id), read_table("poses", root, campaign_id)
-    cameras = intrinsics_from_table(read_table("camera_calibration", root, campaign_id), metadata)
-    simulated = is_simulated(folder)
-    # the truth, with the user effect modules recorded beside it, read only to report against it
-    truth_doc, truth = read_truth(folder) if simulated else (None, None)
-    base = ErrorModel(effects=recorded_effects(calib_prov.get("effects", []), calib_prov.get("effect_modules", []),
-                                               effect_modules))
+    lake = calibration_from_lake(folder, root, effect_modules)  # calibrate's identification, cached
+    campaign_id, calib_prov, machine, measurements = lake.campaign_id, lake.provenance, lake.machine, lake.measurements
+    cameras, model, truth_doc, truth, simulated = lake.cameras, lake.model, lake.truth_doc, lake.truth, lake.simulated
     orientation = calib_prov.get("orientation_objective", "full")
-    measurements = assemble_measurements(images, pose_table)
-    model = identify_task.submit(machine, measurements, truth, base).result().model  # calibrate's, cached
 
     five_axis = measurements.stage("pige").commands
     seed = int(truth_doc["seed"]) if simulated else int(content_key(campaign_id)[:8], 16)

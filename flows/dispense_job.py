@@ -24,8 +24,7 @@ import pandas as pd
 from prefect import flow, get_run_logger
 
 import fivecal
-from tasks.calibration_steps import identify_task
-from tasks.detector_comparison import intrinsics_from_table
+from flows.lake_calibration import calibration_from_lake
 from tasks.dispense_job.area_acceptance import AcceptanceRules
 from tasks.dispense_job.bead_path import bead_path
 from tasks.dispense_job.program import write_program
@@ -37,15 +36,8 @@ from tasks.dispense_job.tray_io import read_tray
 from tasks.dispense_job.tray_job import PHASES, Calibration, Planners
 from tasks.dispensing.measure import full_resolution
 from tasks.dispensing.tip import with_tool_offset
-from tasks.effects import parse_effect
-from tasks.error_model import ErrorModel
-from tasks.identification.measurements import assemble_measurements
-from tasks.ingest import load_campaign_metadata
 from tasks.machine import load_machine
-from tasks.results_lake import read_provenance, read_table, write_partitions
-from tasks.simulate import read_truth
-from tasks.verification_capture import is_simulated
-from tasks.vision import nominal_machine
+from tasks.results_lake import read_provenance, write_partitions
 
 CAMERA = "camera1"
 
@@ -53,19 +45,8 @@ CAMERA = "camera1"
 def load_calibration(campaign: Path, root: Path | None) -> Calibration:
     """The calibrated machine of a campaign from the lake (calibrate's cached identification), with
     the dispensing test's tip offset folded in when it was run; its truth when simulated."""
-    metadata = load_campaign_metadata(campaign)
-    campaign_id = metadata["campaign_id"]
-    try:
-        prov = read_provenance("pige", campaign_id, root)
-    except (FileNotFoundError, OSError) as e:
-        raise ValueError(f"campaign {campaign_id} has no calibration in the lake ({e}): run fivecal calibrate "
-                         f"first") from None
-    machine = nominal_machine(metadata)
-    images, poses = read_table("images", root, campaign_id), read_table("poses", root, campaign_id)
-    cameras = intrinsics_from_table(read_table("camera_calibration", root, campaign_id), metadata)
-    truth = read_truth(campaign)[1] if is_simulated(campaign) else None
-    base = ErrorModel(effects=[parse_effect(s) for s in prov.get("effects", [])])
-    model = identify_task.submit(machine, assemble_measurements(images, poses), truth, base).result().model
+    lake = calibration_from_lake(campaign, root)  # calibrate's identification, cached
+    campaign_id, machine, cameras, model, truth = lake.campaign_id, lake.machine, lake.cameras, lake.model, lake.truth
     notes = [f"identified model of campaign {campaign_id}"]
     try:
         tip = read_provenance("dispense_inspection", campaign_id, root).get("tip_offset_um")

@@ -31,12 +31,11 @@ from tasks.calibration_steps import compensate_task
 from tasks.compensation import desired_tip_poses
 from tasks.dispensing.capture import CAMERA, plan_rows, write_plan
 from tasks.dispensing.inspection import load_config
-from tasks.dispensing.measure import dispense_rows, full_resolution, load_capture_manifest
+from tasks.dispensing.measure import dispense_rows, load_capture_manifest
 from tasks.dispensing.report import write_dispensing_report
 from tasks.dispensing.steps import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
 from tasks.dispensing.workpiece import Workpiece, imaging_commands, ring_layout
-from tasks.machine import load_machine
 from tasks.results_lake import read_provenance, read_table, write_partition
 from tasks.verification import modelled_errors, predicted_by, verification_table
 from tasks.vision import content_key
@@ -100,7 +99,7 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     root = None if results_root is None else Path(results_root)
     lake = calibration_from_lake(folder, root, effect_modules)  # calibrate's identification, cached
     campaign_id, calib_prov, machine, measurements = lake.campaign_id, lake.provenance, lake.machine, lake.measurements
-    cameras, model, truth_doc, truth, simulated = lake.cameras, lake.model, lake.truth_doc, lake.truth, lake.simulated
+    model, truth_doc, truth, simulated = lake.model, lake.truth_doc, lake.truth, lake.simulated
     orientation = calib_prov.get("orientation_objective", "full")
 
     five_axis = measurements.stage("pige").commands
@@ -113,8 +112,7 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     dispensed = {"nominal": layouts["nominal"].commands,
                  "compensated": compensate_task.submit(machine, model, layouts["compensated"].commands,
                                                        orientation).result().commands}
-    full_camera = full_resolution(cameras[CAMERA], round(load_machine("prototype").cameras[CAMERA].width_px
-                                                         / cameras[CAMERA].width_px))
+    full_camera = lake.full_resolution_camera(CAMERA)
     first_rows = pd.concat([plan_rows(k, layouts[k].centres, layouts[k].surface_z_mm, dispensed[k], imaging[k])
                             for k in ("nominal", "compensated")], ignore_index=True)
     key = content_key(DISPENSE_CODE_VERSION, first_rows.round(9), workpiece.to_dict())[:12]

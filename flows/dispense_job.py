@@ -34,9 +34,7 @@ from tasks.dispense_job.tour_exact import plan_tour
 from tasks.dispense_job.travel_time import travel_time_s
 from tasks.dispense_job.tray_io import read_tray
 from tasks.dispense_job.tray_job import PHASES, Calibration, Planners
-from tasks.dispensing.measure import full_resolution
 from tasks.dispensing.tip import with_tool_offset
-from tasks.machine import load_machine
 from tasks.results_lake import read_provenance, write_partitions
 
 CAMERA = "camera1"
@@ -46,7 +44,7 @@ def load_calibration(campaign: Path, root: Path | None) -> Calibration:
     """The calibrated machine of a campaign from the lake (calibrate's cached identification), with
     the dispensing test's tip offset folded in when it was run; its truth when simulated."""
     lake = calibration_from_lake(campaign, root)  # calibrate's identification, cached
-    campaign_id, machine, cameras, model, truth = lake.campaign_id, lake.machine, lake.cameras, lake.model, lake.truth
+    campaign_id, machine, model, truth = lake.campaign_id, lake.machine, lake.model, lake.truth
     notes = [f"identified model of campaign {campaign_id}"]
     try:
         tip = read_provenance("dispense_inspection", campaign_id, root).get("tip_offset_um")
@@ -57,8 +55,7 @@ def load_calibration(campaign: Path, root: Path | None) -> Calibration:
         notes.append("with the dispensing test's tip offset (" + ", ".join(f"{v:+.2f}" for v in tip) + " µm)")
     else:
         notes.append("without a tip offset (fivecal dispense-test not run)")
-    factor = round(load_machine("prototype").cameras[CAMERA].width_px / cameras[CAMERA].width_px)
-    return Calibration(campaign_id, machine, model, full_resolution(cameras[CAMERA], factor), truth, tuple(notes))
+    return Calibration(campaign_id, machine, model, lake.full_resolution_camera(CAMERA), truth, tuple(notes))
 
 
 @flow(name="dispense-job")

@@ -10,11 +10,12 @@ from pathlib import Path
 from tasks.calibration_steps import identify_task
 from tasks.camera_model import CameraModel
 from tasks.detector_comparison import intrinsics_from_table
+from tasks.dispensing.measure import full_resolution
 from tasks.effects import recorded_effects
 from tasks.error_model import ErrorModel
 from tasks.identification.measurements import Measurements, assemble_measurements
 from tasks.ingest import load_campaign_metadata
-from tasks.machine import Machine
+from tasks.machine import Machine, load_machine
 from tasks.results_lake import read_provenance, read_table
 from tasks.simulate import read_truth
 from tasks.verification_capture import is_simulated
@@ -40,6 +41,12 @@ class LakeCalibration:
     @property
     def simulated(self) -> bool:
         return self.truth is not None
+
+    def full_resolution_camera(self, camera: str) -> CameraModel:
+        """``camera``'s calibrated model on the unbinned sensor (the campaign's images may be binned,
+        ``--size small``): what the full-resolution dispensing crops are measured with."""
+        model = self.cameras[camera]
+        return full_resolution(model, round(load_machine("prototype").cameras[camera].width_px / model.width_px))
 
 
 def calibration_from_lake(campaign: Path, root: Path | None, effect_modules: list[str] | None = None

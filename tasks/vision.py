@@ -35,7 +35,7 @@ from tasks.camera_model import CameraModel
 from tasks.detection import detect_grid
 from tasks.detection.grid_order import rotation_deg
 from tasks.detection.perspective import project
-from tasks.ingest import CampaignError
+from tasks.ingest import MAX_FAULT_FRACTION, CampaignError
 from tasks.kinematics import forward
 from tasks.machine import CALIBRATION_STAGE, Machine, machine_from_dict, plate_seen
 from tasks.plate import DotPlate
@@ -48,9 +48,6 @@ COMMANDS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
 PRIOR_COLUMNS = tuple(f"prior_h{i}{j}" for i in range(3) for j in range(3))
 """Columns of the predicted plate → image homography that detection takes (:func:`with_detection_inputs`)."""
-# More images without a grid than this fraction: the plates campaign.json describes are most likely
-# not the plates photographed, and the campaign is refused before any table is replaced.
-MAX_UNDETECTED_FRACTION = 0.5
 DETECTION_COLUMNS = ("image_id", "camera", "plate", "detection_status", "detection_message", "rotation_deg",
                      "elapsed_ms")
 
@@ -229,11 +226,12 @@ def calibrate_cameras(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
 
 def check_detections(campaign: str | Path, detections: pd.DataFrame, plates: Mapping[str, DotPlate]) -> None:
     """Raise :class:`tasks.ingest.CampaignError` when no grid was found in more than
-    :data:`MAX_UNDETECTED_FRACTION` of the images detection ran on (``detections``: one row per
+    :data:`tasks.ingest.MAX_FAULT_FRACTION` of the images (then the plates campaign.json describes
+    are most likely not the plates photographed) detection ran on (``detections``: one row per
     image, :data:`DETECTION_COLUMNS`), saying per plate how many were found with the geometry
     campaign.json gives it, and the first image's reason."""
     missed = detections["detection_status"] != "ok"
-    if not len(detections) or missed.sum() <= MAX_UNDETECTED_FRACTION * len(detections):
+    if not len(detections) or missed.sum() <= MAX_FAULT_FRACTION * len(detections):
         return
     per_plate = []
     for name, g in detections.groupby("plate", sort=True):
@@ -243,7 +241,7 @@ def check_detections(campaign: str | Path, detections: pd.DataFrame, plates: Map
     first = detections[missed].iloc[0]
     raise CampaignError(
         f"{campaign}: no dot grid found in {int(missed.sum())} of {len(detections)} images, more than the "
-        f"{MAX_UNDETECTED_FRACTION:.0%} a campaign may miss (MAX_UNDETECTED_FRACTION): check each plate's rows, "
+        f"{MAX_FAULT_FRACTION:.0%} a campaign may miss (MAX_FAULT_FRACTION): check each plate's rows, "
         f"cols, pitch_mm and dark_dots in campaign.json against the plates photographed; refused before the dots, "
         f"camera_calibration and poses tables are written. Grids found per plate: {'; '.join(per_plate)}. "
         f"First: image {first['image_id']}: {first['detection_status']}: {first['detection_message']}")

@@ -9,7 +9,7 @@ Prefect result storage for every run (so that every image is checked and every g
 afresh; the bench checks that nothing came from the cache):
 
 * the ingest flow (read, hash and decode every image; write the images table), then
-* detection: every detection chunk of measure (``tasks.vision_steps.detect_chunk``, RRHT) in a
+* detection: every detection chunk of measure (``tasks.steps.vision.detect_chunk``, RRHT) in a
   small flow of this bench, on the ingested images,
 
 each on: a local Dask cluster of 1 worker process, one of 2 worker processes (one thread each;
@@ -47,10 +47,10 @@ def detection_flow():
     """A flow that detects the dots of every ingested image of a campaign, chunk by chunk, as measure does."""
     from prefect import flow
 
-    from tasks.ingest import load_campaign_metadata
-    from tasks.results_lake import read_table
-    from tasks.vision import campaign_plates, detection_chunks, with_detection_inputs
-    from tasks.vision_steps import detect_chunk
+    from tasks.campaign.ingest import load_campaign_metadata
+    from tasks.lake.store import read_table
+    from tasks.steps.vision import detect_chunk
+    from tasks.vision.pipeline import campaign_plates, detection_chunks, with_detection_inputs
 
     @flow(name="bench-detect")
     def detect_all(campaign: str, results_root: str, chunk_size: int) -> dict:

@@ -4,7 +4,7 @@
     .venv/bin/python bench/bench_detection.py --quick    # 4 images, 3 repeats
     .venv/bin/python bench/bench_detection.py --hough    # also time the HoughCircles baseline
 
-Images are rendered by ``tasks.render`` (3072×2048, the prototype's two cameras and plates, lens
+Images are rendered by ``tasks.simulation.render`` (3072×2048, the prototype's two cameras and plates, lens
 distortion, defocus, vignetting, illumination gradient, shot and read noise) at poses with in-plane
 rotations and tilts up to 30°, and held in memory as PNG bytes. Per image, the PNG is decoded,
 then each detector runs ``--repeat`` times with the detectors interleaved (so that a busy machine
@@ -28,10 +28,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tasks.camera_model import CameraModel
-from tasks.detection import detect_grid
-from tasks.plate import DotPlate, facing_camera_pose
-from tasks.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
+from tasks.machine.plate import DotPlate, facing_camera_pose
+from tasks.simulation.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
+from tasks.vision.camera_model import CameraModel
+from tasks.vision.detection import detect_grid
 
 DIST1 = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
 DIST2 = (-0.071, 0.132, -0.00009, 0.00015, -0.056)

@@ -16,13 +16,13 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1]), str(Path(__file__).res
 
 from test_diagnosis import COV, PLAN, simulate  # noqa: E402
 
-from tasks.campaign_plan import plan_campaign  # noqa: E402
-from tasks.diagnosis import cross_validated_rms, diagnose  # noqa: E402
-from tasks.diagnosis.linearisation import alternation_of  # noqa: E402
-from tasks.effects import parse_effect  # noqa: E402
+from tasks.analysis.diagnosis import cross_validated_rms, diagnose  # noqa: E402
+from tasks.analysis.diagnosis.linearisation import alternation_of  # noqa: E402
 from tasks.identification.measurements import planned_measurements  # noqa: E402
 from tasks.identification.pige_identification import CalibrationResult, calibrate  # noqa: E402
-from tasks.machine import load_machine  # noqa: E402
+from tasks.machine.description import load_machine  # noqa: E402
+from tasks.machine.effects import parse_effect  # noqa: E402
+from tasks.simulation.campaign_plan import plan_campaign  # noqa: E402
 
 
 def main(specs: list[str]) -> None:

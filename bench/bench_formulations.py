@@ -19,9 +19,9 @@ import argparse
 import numpy as np
 import pandas as pd
 
-from tasks.campaign_plan import CampaignPlan, five_axis_poses
-from tasks.error_model import ARCSEC, UM, ErrorModel
-from tasks.formulations import (
+from tasks.machine.description import load_machine
+from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.formulations import (
     DH,
     GLOBAL_POE,
     LOCAL_POE,
@@ -33,9 +33,9 @@ from tasks.formulations import (
     format_table5,
     global_poe_tool_in_workpiece,
 )
-from tasks.kinematics import forward, position_orientation_error
-from tasks.machine import load_machine
-from tasks.prototype_errors import load_prototype_errors
+from tasks.machine.kinematics import forward, position_orientation_error
+from tasks.simulation.campaign_plan import CampaignPlan, five_axis_poses
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 
 def main() -> None:

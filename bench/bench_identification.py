@@ -17,9 +17,7 @@ import argparse
 import numpy as np
 from timing import best_of
 
-from tasks import se3
-from tasks.campaign_plan import CampaignPlan, plan_campaign
-from tasks.error_model import ARCSEC, ErrorModel
+from tasks.core import se3
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pdge_extraction import extract_pdges
 from tasks.identification.pige_identification import (
@@ -28,9 +26,11 @@ from tasks.identification.pige_identification import (
     identify_pige,
     synthetic_measurements,
 )
-from tasks.kinematics import forward
-from tasks.machine import load_machine
-from tasks.prototype_errors import load_prototype_errors
+from tasks.machine.description import load_machine
+from tasks.machine.error_model import ARCSEC, ErrorModel
+from tasks.machine.kinematics import forward
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 GOAL_S = 2.0
 COV = np.diag([0.25e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])

@@ -13,10 +13,10 @@ import argparse
 import numpy as np
 from timing import best_of
 
-from tasks.campaign_plan import CampaignPlan, five_axis_poses
-from tasks.kinematics import forward
-from tasks.machine import load_machine
-from tasks.prototype_errors import load_prototype_errors
+from tasks.machine.description import load_machine
+from tasks.machine.kinematics import forward
+from tasks.simulation.campaign_plan import CampaignPlan, five_axis_poses
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 SEED_MS_PER_POSE = 0.088
 

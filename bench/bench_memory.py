@@ -36,7 +36,7 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tasks.campaign_plan import CampaignPlan  # noqa: E402
+from tasks.simulation.campaign_plan import CampaignPlan  # noqa: E402
 
 BASE_PLAN = CampaignPlan(calibration_trials=2, images_per_trial=5, sweep_positions=2, sweep_repeats=1,
                          pige_poses=6, validation_poses=2)
@@ -53,7 +53,7 @@ def scaled_plan(plan: CampaignPlan, scale: int) -> CampaignPlan:
 def bench_campaign(work: Path, name: str, plan: CampaignPlan, size: str, seed: int = 7) -> Path:
     """A simulated campaign ``work/name`` of ``plan`` at ``size``, written once and re-used while its
     truth.json records the same plan, size and seed."""
-    from tasks.simulate import write_campaign
+    from tasks.simulation.simulate import write_campaign
 
     folder = work / name
     truth = folder / "truth" / "truth.json"

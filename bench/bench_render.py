@@ -4,7 +4,7 @@ Each image gets its own intrinsics (focal drift ~1e-4, so no per-camera cache he
 a few realistic poses (camera 1 / plate "a" at ~280 mm, camera 2 / plate "b" at ~80 mm, tilts up
 to 15°).  Run side by side in this process on one core (OpenCV and BLAS threads set to 1):
 
-* ``tasks.render.render_plate_image`` (tiled exact coverage, coarse undistortion grid);
+* ``tasks.simulation.render.render_plate_image`` (tiled exact coverage, coarse undistortion grid);
 * baseline "naive": the same physics done full frame — exact Newton undistortion of every
   pixel, per-pixel plate coordinates and edge coverage, full-frame blur (one σ) and noise;
 * baseline "cv2 draw": anti-aliased ``cv2.ellipse``/``cv2.fillPoly`` of the projected outlines
@@ -31,9 +31,8 @@ import time
 import cv2
 import numpy as np
 
-from tasks.camera_model import CameraModel
-from tasks.plate import DotPlate
-from tasks.render import (
+from tasks.machine.plate import DotPlate
+from tasks.simulation.render import (
     ImagingConditions,
     blur_sigma_px,
     gain_map,
@@ -42,6 +41,7 @@ from tasks.render import (
     true_dot_centres,
     undistort_pixels,
 )
+from tasks.vision.camera_model import CameraModel
 
 DIST = (-0.08, 0.12, 1e-4, -2e-4, -0.05)
 CAM1 = CameraModel(3072, 2048, 0.0024, 16.0, 1535.7, 1023.2, DIST, focus_distance_mm=280.0, f_number=8.0, name="cam1")
@@ -198,7 +198,7 @@ def time_renderer(fn, jobs, cond) -> tuple[list[float], float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--n", type=int, default=10, help="full-size images for tasks.render (default 10)")
+    ap.add_argument("--n", type=int, default=10, help="full-size images for tasks.simulation.render (default 10)")
     ap.add_argument("--baseline-n", type=int, default=2, help="images per baseline (default 2)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
@@ -208,7 +208,7 @@ def main() -> None:
     jobs = workload(args.n)
     base_jobs = workload(args.baseline_n)
     renderers = [
-        ("tasks.render", render_plate_image, jobs),
+        ("tasks.simulation.render", render_plate_image, jobs),
         ("naive full-frame", naive_render, base_jobs),
         ("cv2 draw", cv2_draw_render, base_jobs),
     ]
@@ -241,7 +241,7 @@ def main() -> None:
         )
     ours = timings[0][0]
     print(
-        "tasks.render per scene, ms: "
+        "tasks.simulation.render per scene, ms: "
         + ", ".join(
             f"#{i} {SCENES[i][0].name}/{SCENES[i][1].name}: {1000 * float(np.mean(ours[i :: len(SCENES)])):.0f}"
             for i in range(min(len(SCENES), len(ours)))

@@ -22,7 +22,7 @@ from tasks.dispense_job.camera_view import project_to_camera
 from tasks.dispense_job.pixel_map import commands_at, pixels_to_workpiece
 from tasks.dispense_job.tray_io import STANDOFF_MM, read_tray
 from tasks.dispensing.tip import landing_points
-from tasks.machine import load_machine
+from tasks.machine.description import load_machine
 
 
 @flow(name="dispense-job-error-split")

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tasks.ingest import load_campaign_metadata
-from tasks.results_lake import read_table
+from tasks.campaign.ingest import load_campaign_metadata
+from tasks.lake.store import read_table
 
 CLI = [sys.executable, "-c", "from fivecal.cli import app; app()"]
 

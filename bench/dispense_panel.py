@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tasks.results_lake import read_table
+from tasks.lake.store import read_table
 
 
 def panel_row(campaign_id: str, results: Path, reports: Path) -> dict | None:

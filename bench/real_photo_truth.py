@@ -17,7 +17,7 @@ here). Written to DIR per photograph and scale:
   centres at integers (through the fisheye the mapped rim centre, not the centre of an ellipse
   fitted to the distorted rim).
 * ``NAME[_xVARIANT].json``: the truth of the block, row-major like
-  :meth:`tasks.plate.DotPlate.dot_centres_mm` for ``DotPlate(rows, cols, ratio, 1)`` along the
+  :meth:`tasks.machine.plate.DotPlate.dot_centres_mm` for ``DotPlate(rows, cols, ratio, 1)`` along the
   photograph's lattice, px, origin at the centre of the top-left pixel.
 
 What the truth is (no detector of ours is involved): ``truth_px``, the centre of the ellipse
@@ -35,8 +35,8 @@ hundredths of a px on these views). Recorded beside it, to judge it:
   (:func:`predict_hole`): a check that the labels follow the lattice (a mislabelled dot would be
   a pitch off); it also shows how regular the printed plate and the lens are.
 
-Regions are found (only found) with :func:`tasks.detection.blobs.contour_candidates` and
-labelled with :func:`tasks.detection.grid.build_lattice`.
+Regions are found (only found) with :func:`tasks.vision.detection.blobs.contour_candidates` and
+labelled with :func:`tasks.vision.detection.grid.build_lattice`.
 """
 
 from __future__ import annotations
@@ -51,10 +51,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tasks.detection.blobs import contour_candidates
-from tasks.detection.grid import build_lattice, reduce_lattice
-from tasks.detection.perspective import fit_homography
-from tasks.detection.perspective import project as hproject
+from tasks.vision.detection.blobs import contour_candidates
+from tasks.vision.detection.grid import build_lattice, reduce_lattice
+from tasks.vision.detection.perspective import fit_homography
+from tasks.vision.detection.perspective import project as hproject
 
 RIM_POINTS = 64
 

@@ -45,20 +45,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tasks import se3
-from tasks.campaign_plan import CampaignPlan, plan_campaign
-from tasks.compensation import desired_tip_poses
-from tasks.error_model import ARCSEC, UM
+from tasks.analysis.compensation import desired_tip_poses
+from tasks.analysis.residuals import trend_summary
+from tasks.core import se3
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.parameters import default_parameters
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS
 from tasks.identification.pige_identification import calibrate, synthetic_measurements
 from tasks.identification.uncertainty import propagate_uncertainty
-from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER, load_machine
-from tasks.prototype_errors import load_prototype_errors
-from tasks.residuals import trend_summary
-from tasks.results_lake import read_table
+from tasks.lake.store import read_table
+from tasks.machine.description import AXIS_ORDER, load_machine
+from tasks.machine.error_model import ARCSEC, UM
+from tasks.machine.kinematics import forward
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 POSE_COV = np.diag([0.2e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])
 """The tests' per-pose covariance (mm, rad): 0.2 µm lateral, 4 µm depth, 70″ tilts, 3″ about the normal."""

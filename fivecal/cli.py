@@ -55,7 +55,7 @@ def simulate(
              "recorded with the truth, the analysis does not see it")] = None,
 ) -> None:
     """Simulate a measurement campaign of the prototype and write its folder."""
-    from tasks.effects import load_effect_modules, module_source_file, parse_effect
+    from tasks.machine.effects import load_effect_modules, module_source_file, parse_effect
 
     _check_dask(dask_address, dask_workers)
     try:
@@ -67,7 +67,7 @@ def simulate(
 
     if size not in ("full", "small"):
         raise typer.BadParameter("size must be 'full' or 'small'", param_hint="--size")
-    from tasks.campaign_plan import PLANS
+    from tasks.simulation.campaign_plan import PLANS
 
     if plan not in PLANS:
         raise typer.BadParameter(f"plan must be one of {', '.join(PLANS)}", param_hint="--plan")
@@ -87,9 +87,9 @@ def simulate(
 
 def _on_valid_campaign(campaign: Path, run):
     """Run ``run()`` on a campaign whose folder, metadata and manifest pass the campaign-level
-    checks (tasks.ingest.read_checked_manifest); otherwise print the error (it names the file) and
+    checks (tasks.campaign.ingest.read_checked_manifest); otherwise print the error (it names the file) and
     exit 2, before any Prefect server starts or anything is written."""
-    from tasks.ingest import CampaignError, read_checked_manifest
+    from tasks.campaign.ingest import CampaignError, read_checked_manifest
 
     try:
         read_checked_manifest(campaign)
@@ -107,7 +107,7 @@ def ingest(
     dask_workers: DaskWorkers = None,
 ) -> None:
     """Validate a campaign and write its images table (cached by image content)."""
-    from tasks.ingest import format_summary
+    from tasks.campaign.ingest import format_summary
 
     _check_dask(dask_address, dask_workers)
 
@@ -185,7 +185,7 @@ def compare_detectors(
     repeats: Annotated[int, typer.Option(help="timed runs per image and detector")] = 1,
 ) -> None:
     """Table 4: runtime, detection rate, centre error, PnP reprojection and pose error of each detector."""
-    from tasks.detector_comparison import format_table4, run_comparison
+    from tasks.vision.detector_comparison import format_table4, run_comparison
 
     summary, path = run_comparison(campaign, results, detectors=tuple(detector or ("rrht", "blob", "hough")),
                                    max_images_per_camera=max_images_per_camera, repeats=repeats)
@@ -217,9 +217,9 @@ def detect(
     import cv2
     import numpy as np
 
-    from tasks.detection import DETECTORS, detect_grid
-    from tasks.machine import load_machine
-    from tasks.plate import DotPlate
+    from tasks.machine.description import load_machine
+    from tasks.machine.plate import DotPlate
+    from tasks.vision.detection import DETECTORS, detect_grid
 
     if detector not in DETECTORS:
         raise typer.BadParameter(f"choose one of {sorted(DETECTORS)}", param_hint="--detector")
@@ -237,7 +237,7 @@ def detect(
     plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots, row_pitch_mm=row_pitch_mm)
     result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
     if debug_image is not None:
-        from tasks.detection.debug_image import draw_detection
+        from tasks.vision.detection.debug_image import draw_detection
 
         if not cv2.imwrite(str(debug_image), draw_detection(grey, result, plate)):
             typer.echo(f"error: {debug_image}: cannot write the debug image (folder missing or not an image "
@@ -274,7 +274,7 @@ def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports:
                    orientation: str = "full", verification_repeats: int = 1) -> dict:
     """Check the effect and orientation options (a bad value is a usage error), then run the calibrate
     flow on a campaign that passes the campaign-level checks; returns the flow's summary."""
-    from tasks.effects import load_effect_modules, parse_effect
+    from tasks.machine.effects import load_effect_modules, parse_effect
 
     _check_dask(dask_address, dask_workers)
     check_orientation(orientation)
@@ -353,7 +353,7 @@ def diagnose(
 @app.command()
 def effects() -> None:
     """List the catalogue of injectable effects with their parameters and units."""
-    from tasks.effects import catalogue_text
+    from tasks.machine.effects import catalogue_text
 
     typer.echo(catalogue_text())
 
@@ -370,10 +370,10 @@ def truth_stats(
 
     Each validation pose is taken in the context it has in the seed's campaign plan (approach per
     axis, time since the start, temperature), so effects that depend on them count."""
-    from tasks.effects import load_effect_modules, parse_effect
-    from tasks.machine import load_machine
-    from tasks.prototype_errors import load_prototype_errors
-    from tasks.truth_stats import (
+    from tasks.machine.description import load_machine
+    from tasks.machine.effects import load_effect_modules, parse_effect
+    from tasks.simulation.prototype_errors import load_prototype_errors
+    from tasks.simulation.truth_stats import (
         SEED_BEFORE,
         effects_change,
         pdge_magnitudes,

@@ -13,7 +13,7 @@ on Ctrl-C / SIGTERM — never a traceback, never a process left behind.
   image), 130 for SIGINT and 143 for SIGTERM. If the interrupt has not reached the command
   :data:`GRACE_S` seconds after the signal, or on a second signal, the same happens from a
   watchdog thread. Results are written atomically per partition
-  (tasks/results_lake.py), so the lake is left as a kill would leave it: every partition whole.
+  (tasks/lake/store.py), so the lake is left as a kill would leave it: every partition whole.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ def dispense_test(
     fold it into the compensation and check it on a fresh workpiece."""
     from fivecal.cli import _on_valid_campaign
     from tasks.dispensing.inspection import load_config
-    from tasks.effects import load_effect_modules
+    from tasks.machine.effects import load_effect_modules
 
     try:
         load_config(inspection_config)

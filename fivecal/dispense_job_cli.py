@@ -102,7 +102,7 @@ def simulate_tray(
     """Render a tray of boards as camera 1 of a simulated campaign's machine sees it (with truth)."""
     from tasks.dispense_job.boards import TraySpec
     from tasks.dispense_job.tray_io import simulate_tray as simulate
-    from tasks.verification_capture import is_simulated
+    from tasks.simulation.verification_capture import is_simulated
 
     if not is_simulated(campaign):
         typer.echo(f"error: {campaign}: not a simulated campaign (no truth): a real tray is photographed", err=True)

@@ -22,7 +22,7 @@ def query(
 ) -> None:
     """Run one read-only SQL query (SELECT) over every table of the results lake (DuckDB; docs/queries.md)
     and print the result as it streams."""
-    from tasks.lake_query import FORMATS, LakeQueryError, print_result, query_batches
+    from tasks.lake.query import FORMATS, LakeQueryError, print_result, query_batches
 
     if format not in FORMATS:
         typer.echo(f"error: --format {format!r}: choose one of {', '.join(FORMATS)}", err=True)
@@ -46,7 +46,7 @@ def reproduce(
 ) -> None:
     """Re-run a report's calibration with its recorded parameters and Prefect's cache refreshed; print
     every number that differs (exit 1), or "all N numbers reproduced"."""
-    from tasks.reproduce import reproduce_report
+    from flows.reproduce import reproduce_report
 
     code = reproduce_report(report_dir, campaign, workdir, echo=typer.echo, error=lambda m: typer.echo(m, err=True))
     raise typer.Exit(code)

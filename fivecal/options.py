@@ -26,9 +26,9 @@ VerificationRepeatsOption = Annotated[int, typer.Option(
 
 
 def check_orientation(orientation: str) -> str:
-    """``orientation`` if it is a compensation objective (tasks.compensation.ORIENTATION_OBJECTIVES);
+    """``orientation`` if it is a compensation objective (tasks.analysis.compensation.ORIENTATION_OBJECTIVES);
     a usage error naming the choices otherwise."""
-    from tasks.compensation import check_objective
+    from tasks.analysis.compensation import check_objective
 
     try:
         return check_objective(orientation)

@@ -28,9 +28,9 @@ SettleOption = Annotated[float, typer.Option(help="seconds a folder must be unch
 
 
 def parse_tolerance(specs: list[str] | None):
-    """A :class:`tasks.drift.DriftTolerance` from ``KEY=VALUE`` strings over the defaults (µm,
+    """A :class:`tasks.analysis.drift.DriftTolerance` from ``KEY=VALUE`` strings over the defaults (µm,
     arcsec, coverage factor k); typer.BadParameter naming the bad spec otherwise."""
-    from tasks.drift import DriftTolerance
+    from tasks.analysis.drift import DriftTolerance
 
     known = {f.name: f.type for f in fields(DriftTolerance)}
     values: dict[str, Any] = {}
@@ -54,7 +54,7 @@ def _parameters(watch: Path, results: Path | None, reports: Path, tolerance: lis
                 reference: str | None, settle_seconds: float, detector: str, orientation: str,
                 verification_repeats: int = 1) -> dict[str, Any]:
     """The flow's parameters with absolute paths (a served run may start in another folder)."""
-    from tasks.results_lake import results_root
+    from tasks.lake.store import results_root
 
     if not watch.is_dir():
         raise typer.BadParameter(f"{watch} is not a folder", param_hint="--watch")

@@ -22,7 +22,40 @@ import fivecal
 from flows.ingest import ingest_campaign
 from flows.measure import measure_campaign
 from flows.runners import image_task_runner
-from tasks.calibration_steps import (
+from tasks.analysis.compensation import check_objective, compensation_table, desired_tip_poses
+from tasks.analysis.diagnosis.verdict import residual_follows_sentence
+from tasks.analysis.model_ladder import append_step, compensated_tip_errors, ladder_step
+from tasks.analysis.residual_trends import shared_deviations, trend_tests
+from tasks.analysis.residuals import dot_residual_table, plates_of, pose_residual_table
+from tasks.analysis.verification import (
+    capture_errors,
+    predicted_by,
+    vbm_errors,
+    verification_table,
+    with_phase_columns,
+)
+from tasks.campaign.capture_request import (
+    capture_rows,
+    check_capture_commands,
+    check_repeats,
+    has_capture,
+    planned_capture_context,
+    repeats_key,
+    write_capture_request,
+)
+from tasks.campaign.ingest import CampaignError, load_campaign_metadata
+from tasks.identification.measurements import assemble_measurements, capture_context
+from tasks.identification.pige_identification import null_space_sentences
+from tasks.identification.uncertainty import expected_tip_errors
+from tasks.lake.store import partition_path, read_table, write_partitions
+from tasks.machine.description import CALIBRATION_STAGE
+from tasks.machine.effects import load_effect_modules, parse_effect
+from tasks.machine.error_model import ErrorModel
+from tasks.report import ReportData
+from tasks.report.residual_figures import residual_report
+from tasks.simulation.simulate import read_truth
+from tasks.simulation.verification_capture import is_simulated, true_campaign_errors, true_capture_errors
+from tasks.steps.calibration import (
     IDENTIFICATION_CODE_VERSION,
     capture_task,
     compensate_task,
@@ -33,42 +66,9 @@ from tasks.calibration_steps import (
     propagate_task,
     report_task,
 )
-from tasks.capture_request import (
-    capture_rows,
-    check_capture_commands,
-    check_repeats,
-    has_capture,
-    planned_capture_context,
-    repeats_key,
-    write_capture_request,
-)
-from tasks.compensation import check_objective, compensation_table, desired_tip_poses
-from tasks.detector_comparison import intrinsics_from_table
-from tasks.diagnosis.verdict import residual_follows_sentence
-from tasks.effects import load_effect_modules, parse_effect
-from tasks.error_model import ErrorModel
-from tasks.identification.measurements import assemble_measurements, capture_context
-from tasks.identification.pige_identification import null_space_sentences
-from tasks.identification.uncertainty import expected_tip_errors
-from tasks.ingest import CampaignError, load_campaign_metadata
-from tasks.machine import CALIBRATION_STAGE
-from tasks.model_ladder import append_step, compensated_tip_errors, ladder_step
-from tasks.report import ReportData
-from tasks.report.residual_figures import residual_report
-from tasks.residual_trends import shared_deviations, trend_tests
-from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
-from tasks.results_lake import partition_path, read_table, write_partitions
-from tasks.simulate import read_truth
-from tasks.verification import (
-    capture_errors,
-    predicted_by,
-    vbm_errors,
-    verification_table,
-    with_phase_columns,
-)
-from tasks.verification_capture import is_simulated, true_campaign_errors, true_capture_errors
-from tasks.vision import campaign_plates, content_key, nominal_machine, with_detection_inputs
-from tasks.vision_steps import detect_chunk, poses
+from tasks.steps.vision import detect_chunk, poses
+from tasks.vision.detector_comparison import intrinsics_from_table
+from tasks.vision.pipeline import campaign_plates, content_key, nominal_machine, with_detection_inputs
 
 VALIDATION_CAMERA = "camera1"
 
@@ -102,7 +102,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
                        verification_repeats: int = 1) -> dict[str, Any]:
     """The whole calibration of the campaign folder ``campaign``; returns a summary with the report path
     and the verification capture's folder: measured, or (a lab's campaign whose capture is not
-    there yet) requested, its images listed in the folder's capture_plan.csv (tasks.capture_request).
+    there yet) requested, its images listed in the folder's capture_plan.csv (tasks.campaign.capture_request).
 
     dask_address, dask_workers: where the campaign's image work (ingest, detection, camera
     calibration, poses) runs (flows.runners.image_task_runner); the fit and the simulated
@@ -113,7 +113,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     imported first, so that user-written effect families register themselves. Adding an effect re-runs
     the fit, its followers and the report; the image work is served from the cache.
 
-    orientation: the compensation's orientation objective (``tasks.compensation.ORIENTATION_OBJECTIVES``:
+    orientation: the compensation's orientation objective (``tasks.analysis.compensation.ORIENTATION_OBJECTIVES``:
     "full", the seed's whole tip rotation, or "tool-axis", the tool direction exactly); changing it
     re-runs the compensation, the verification capture and the report.
 

@@ -27,18 +27,18 @@ from prefect import flow, get_run_logger
 
 import fivecal
 from flows.lake_calibration import calibration_from_lake
-from tasks.calibration_steps import compensate_task
-from tasks.compensation import desired_tip_poses
+from tasks.analysis.compensation import desired_tip_poses
+from tasks.analysis.verification import modelled_errors, predicted_by, verification_table
 from tasks.dispensing.capture import CAMERA, plan_rows, write_plan
 from tasks.dispensing.inspection import load_config
 from tasks.dispensing.measure import dispense_rows, load_capture_manifest
-from tasks.dispensing.report import write_dispensing_report
-from tasks.dispensing.steps import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
 from tasks.dispensing.workpiece import Workpiece, imaging_commands, ring_layout
-from tasks.results_lake import read_provenance, read_table, write_partition
-from tasks.verification import modelled_errors, predicted_by, verification_table
-from tasks.vision import content_key
+from tasks.lake.store import read_provenance, read_table, write_partition
+from tasks.report.dispensing_test import write_dispensing_report
+from tasks.steps.calibration import compensate_task
+from tasks.steps.dispensing import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
+from tasks.vision.pipeline import content_key
 
 PHASES = ("nominal", "compensated", "check")
 

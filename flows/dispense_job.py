@@ -28,14 +28,14 @@ from flows.lake_calibration import calibration_from_lake
 from tasks.dispense_job.area_acceptance import AcceptanceRules
 from tasks.dispense_job.bead_path import bead_path
 from tasks.dispense_job.program import write_program
-from tasks.dispense_job.report import write_report
-from tasks.dispense_job.steps import JOB_CODE_VERSION, dispense_tray_task, locate_task
 from tasks.dispense_job.tour_exact import plan_tour
 from tasks.dispense_job.travel_time import travel_time_s
 from tasks.dispense_job.tray_io import read_tray
 from tasks.dispense_job.tray_job import PHASES, Calibration, Planners
 from tasks.dispensing.tip import with_tool_offset
-from tasks.results_lake import read_provenance, write_partitions
+from tasks.lake.store import read_provenance, write_partitions
+from tasks.report.dispense_job import write_report
+from tasks.steps.dispense_job import JOB_CODE_VERSION, dispense_tray_task, locate_task
 
 CAMERA = "camera1"
 

@@ -2,7 +2,7 @@
 write the ``images`` table of the results lake.
 
 A campaign-level fault (no manifest, metadata that breaks its schema, a missing column, no usable
-image, more faulty rows than tasks.ingest.MAX_FAULT_FRACTION) stops the flow before anything is
+image, more faulty rows than tasks.campaign.ingest.MAX_FAULT_FRACTION) stops the flow before anything is
 written. Image-level faults are recorded in the table, one status and
 message per manifest row, and the rest goes on. Re-ingesting an unchanged campaign decodes no
 image: the per-chunk checks are cached by file content.
@@ -16,8 +16,8 @@ from typing import Any
 from prefect import flow, get_run_logger
 
 from flows.runners import image_task_runner
-from tasks.ingest import CHUNK_SIZE, check_usable, format_summary, image_chunks, summarise
-from tasks.ingest_steps import assemble_images_table, check_image_chunk, read_campaign, write_images_table
+from tasks.campaign.ingest import CHUNK_SIZE, check_usable, format_summary, image_chunks, summarise
+from tasks.steps.ingest import assemble_images_table, check_image_chunk, read_campaign, write_images_table
 
 MAX_LOGGED_FAULTS = 20
 
@@ -30,7 +30,7 @@ def ingest_campaign(campaign: str, results_root: str | None = None, chunk_size: 
     chunk_size: images per cached image-check task (the table does not depend on it).
     Returns the summary: campaign_id, n_images, n_ok, n_faults, by_status {status: count},
     chunks, chunks_cached (chunks whose image checks came from the cache), table (Parquet path).
-    Raises tasks.ingest.CampaignError on a campaign-level fault (nothing written).
+    Raises tasks.campaign.ingest.CampaignError on a campaign-level fault (nothing written).
     """
     logger = get_run_logger()
     folder = Path(campaign).resolve()
@@ -63,7 +63,7 @@ def run_ingest(campaign: str | Path, results_root: str | Path | None = None, das
     """Entry point for the CLI: run the flow on a campaign folder and return its summary.
 
     dask_address, dask_workers: where the image checks run (see flows.runners.image_task_runner).
-    Raises tasks.ingest.CampaignError (message names the file) on a campaign-level fault.
+    Raises tasks.campaign.ingest.CampaignError (message names the file) on a campaign-level fault.
     """
     runner = image_task_runner(dask_address, dask_workers)
     return ingest_campaign.with_options(task_runner=runner)(str(campaign),

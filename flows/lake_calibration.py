@@ -7,19 +7,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from tasks.calibration_steps import identify_task
-from tasks.camera_model import CameraModel
-from tasks.detector_comparison import intrinsics_from_table
+from tasks.campaign.ingest import load_campaign_metadata
 from tasks.dispensing.measure import full_resolution
-from tasks.effects import recorded_effects
-from tasks.error_model import ErrorModel
 from tasks.identification.measurements import Measurements, assemble_measurements
-from tasks.ingest import load_campaign_metadata
-from tasks.machine import Machine, load_machine
-from tasks.results_lake import read_provenance, read_table
-from tasks.simulate import read_truth
-from tasks.verification_capture import is_simulated
-from tasks.vision import nominal_machine
+from tasks.lake.store import read_provenance, read_table
+from tasks.machine.description import Machine, load_machine
+from tasks.machine.effects import recorded_effects
+from tasks.machine.error_model import ErrorModel
+from tasks.simulation.simulate import read_truth
+from tasks.simulation.verification_capture import is_simulated
+from tasks.steps.calibration import identify_task
+from tasks.vision.camera_model import CameraModel
+from tasks.vision.detector_comparison import intrinsics_from_table
+from tasks.vision.pipeline import nominal_machine
 
 
 @dataclass(frozen=True)

@@ -13,11 +13,17 @@ from prefect import flow, get_run_logger
 import fivecal
 from flows.ingest import ingest_campaign
 from flows.runners import image_task_runner, subflow_task_runner
-from tasks.ingest import load_campaign_metadata
-from tasks.machine import CALIBRATION_STAGE
-from tasks.results_lake import write_partitions
-from tasks.vision import campaign_plates, check_detections, content_key, detection_chunks, with_detection_inputs
-from tasks.vision_steps import calibrate, detect_chunk, poses, read_images
+from tasks.campaign.ingest import load_campaign_metadata
+from tasks.lake.store import write_partitions
+from tasks.machine.description import CALIBRATION_STAGE
+from tasks.steps.vision import calibrate, detect_chunk, poses, read_images
+from tasks.vision.pipeline import (
+    campaign_plates,
+    check_detections,
+    content_key,
+    detection_chunks,
+    with_detection_inputs,
+)
 
 CHUNK_SIZE = 32
 

@@ -17,11 +17,11 @@ from prefect import flow, get_run_logger
 from prefect.runtime import flow_run
 
 from flows.calibrate import calibrate_campaign
-from tasks.campaign_watch import capture_arrived
-from tasks.compensation import check_objective
-from tasks.drift import DriftTolerance
-from tasks.recalibration_ledger import Ledger
-from tasks.recalibration_steps import drift_report_task, scan_task
+from tasks.analysis.compensation import check_objective
+from tasks.analysis.drift import DriftTolerance
+from tasks.campaign.recalibration_ledger import Ledger
+from tasks.campaign.watch import capture_arrived
+from tasks.steps.recalibration import drift_report_task, scan_task
 
 DEFAULT_SETTLE_S = 120.0
 
@@ -41,11 +41,11 @@ def recalibrate_new_campaigns(watch_dir: str, results_root: str | None = None, r
     reference: campaign_id the drift is measured from (default: the earliest). settle_seconds: a
     folder changed more recently than this is taken to be still copying and left for the next tick.
     orientation: the compensation objective of every calibration ("full" or "tool-axis",
-    tasks.compensation.ORIENTATION_OBJECTIVES); the drift verdict judges the orientation it aims at.
+    tasks.analysis.compensation.ORIENTATION_OBJECTIVES); the drift verdict judges the orientation it aims at.
     verification_repeats: images per compensated pose in each simulated verification capture
     (calibrate_campaign).
     A campaign calibrated while its verification capture was only requested (a lab's campaign,
-    tasks.capture_request) is calibrated again on the first tick after the lab has written that
+    tasks.campaign.capture_request) is calibrated again on the first tick after the lab has written that
     capture (and left it alone for settle_seconds): everything but the capture comes from the cache.
     Returns calibrated/failed/waiting/skipped/awaiting_capture campaign lists and the drift report
     summary (or None).

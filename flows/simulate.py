@@ -11,8 +11,8 @@ import numpy as np
 from prefect import flow, get_run_logger
 
 from flows.runners import image_task_runner
-from tasks.effects import load_effect_modules
-from tasks.simulation_steps import plan_and_write_truth, render_images
+from tasks.machine.effects import load_effect_modules
+from tasks.steps.simulation import plan_and_write_truth, render_images
 
 BATCH_SIZE = 25
 
@@ -23,7 +23,7 @@ def simulate_campaign(out: str, seed: int = 0, size: str = "full", effects: list
                       effect_modules: list[str] | None = None) -> str:
     """Write a simulated campaign to ``out``. The folder appears only when complete.
 
-    plan: a key of :data:`tasks.campaign_plan.PLANS` (default, small, context).
+    plan: a key of :data:`tasks.simulation.campaign_plan.PLANS` (default, small, context).
 
     effect_modules: user modules defining families of ``effects`` (dotted paths or ``.py`` files);
     they are imported here and their source is recorded with the truth, so that the simulator's side

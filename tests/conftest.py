@@ -23,8 +23,8 @@ from typing import NamedTuple
 
 import pytest
 
-from tasks.machine import load_machine
-from tasks.prototype_errors import load_prototype_errors
+from tasks.machine.description import load_machine
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 TINY_CAMPAIGN_ID = "tiny"
 TINY_SEED = 0
@@ -35,8 +35,8 @@ def write_tiny_campaign(folder: Path, campaign_id: str = TINY_CAMPAIGN_ID, seed:
     positions of each axis sweep (3 of C: both stroke ends and home), 2 PIGE and 1 validation pose),
     as ``fivecal simulate`` would write it at ``--size small``, truth included. Science functions
     only; about half a second."""
-    from tasks.campaign_plan import CampaignPlan
-    from tasks.simulate import write_campaign
+    from tasks.simulation.campaign_plan import CampaignPlan
+    from tasks.simulation.simulate import write_campaign
 
     plan = CampaignPlan(calibration_trials=1, images_per_trial=2, sweep_positions=2, sweep_repeats=1,
                         pige_poses=2, validation_poses=1)
@@ -96,7 +96,7 @@ def prefect_harness(tmp_path_factory) -> Iterator[Path]:
 
 @pytest.fixture(scope="session")
 def machine():
-    """The prototype machine description (tasks/machines/prototype.json)."""
+    """The prototype machine description (tasks/machine/machines/prototype.json)."""
     return load_machine("prototype")
 
 
@@ -145,8 +145,8 @@ def calibrated_campaign(tmp_path_factory, request) -> CalibratedCampaign:
         if not done.exists():
             request.getfixturevalue("prefect_harness")
             from flows.calibrate import calibrate_campaign
-            from tasks.campaign_plan import CampaignPlan
-            from tasks.simulate import write_campaign
+            from tasks.simulation.campaign_plan import CampaignPlan
+            from tasks.simulation.simulate import write_campaign
 
             shutil.rmtree(root, ignore_errors=True)
             plan = CampaignPlan(calibration_trials=1, images_per_trial=6, sweep_positions=4, sweep_repeats=1,

@@ -1,4 +1,4 @@
-"""Tests of camera self-calibration (tasks/camera_calibration.py) against the simulator's truth.
+"""Tests of camera self-calibration (tasks/vision/camera_calibration.py) against the simulator's truth.
 
 Pose level (no images): the default campaign plan's fixture views of each camera's calibration
 target (10 trials × 15 per camera), the true intrinsics of ``load_machine("prototype")``, true
@@ -6,7 +6,7 @@ projected dot centres and seeded Gaussian pixel noise σ = 0.03 px per coordinat
 check renders full-size images and calibrates from the detector's centres. Deterministic; about
 10 s.
 
-Measured here (seed 0, σ = 0.03 px; ``python -m tasks.camera_calibration``):
+Measured here (seed 0, σ = 0.03 px; ``python -m tasks.vision.camera_calibration``):
 joint focal error 0.0039 % (camera 1) / 0.0011 % (camera 2), per-trial up to 0.029 % / 0.014 %;
 principal point of the joint fit 0.63 px (2.4 σ) / 0.18 px off.
 """
@@ -20,7 +20,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.camera_calibration import (
+from tasks.machine.description import load_machine
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.simulation.render import ImagingConditions, render_plate_image, true_dot_centres
+from tasks.vision.camera_calibration import (
     INTRINSIC_NAMES,
     MIN_IMAGES,
     STD_NAMES,
@@ -33,9 +36,6 @@ from tasks.camera_calibration import (
     table3,
     trial_views,
 )
-from tasks.campaign_plan import CampaignPlan, plan_campaign
-from tasks.machine import load_machine
-from tasks.render import ImagingConditions, render_plate_image, true_dot_centres
 
 SIGMA = 0.03  # px per coordinate
 SEED = 0
@@ -247,7 +247,7 @@ def test_end_to_end_on_rendered_images(machine, name):
     """Eight full-size (3072×2048) rendered views of the calibration target (vignetting, gradient,
     defocus, noise), centres from the RRHT detector, one trial: measured rms 0.0085 / 0.015 px,
     focal error −0.001 % / 0.014 %, principal point 0.52 / 0.73 px."""
-    from tasks.detection import detect_grid
+    from tasks.vision.detection import detect_grid
 
     poses, fixture = plan_campaign(machine, CampaignPlan(), SEED)
     cam, plate = machine.cameras[name], machine.plates[machine.plate_seen(name, "camera_calibration")]
@@ -274,7 +274,7 @@ def test_end_to_end_on_rendered_images(machine, name):
 def test_intrinsics_covariance_reproduces_opencvs_standard_deviations(calibrations, trials, name):
     """The full covariance of the joint fit (Schur complement over the views' poses) has OpenCV's
     stdDeviationsIntrinsics on its diagonal: f, cx, cy (px) and the five distortion coefficients."""
-    from tasks.intrinsics_uncertainty import intrinsics_covariance
+    from tasks.vision.intrinsics_uncertainty import intrinsics_covariance
 
     cal = calibrations[name]
     views = [(o, m) for objs, imgs, _ in trials[name].values() for o, m in zip(objs, imgs, strict=True)]
@@ -293,7 +293,7 @@ def _joint_camera1(machine, obj, centres):
 
 def _focal_sd(machine, obj, centres, robust: bool) -> float:
     """The standard deviation (px) of camera 1's joint focal length on these views, as reported."""
-    from tasks.intrinsics_uncertainty import intrinsics_covariance
+    from tasks.vision.intrinsics_uncertainty import intrinsics_covariance
 
     model = _joint_camera1(machine, obj, centres)
     return float(np.sqrt(intrinsics_covariance(list(zip(obj, centres, strict=True)), model, robust=robust)[0, 0]))
@@ -329,9 +329,9 @@ def test_pose_sensitivity_to_the_intrinsics_matches_a_re_estimated_pose(calibrat
     """∂δ/∂θ of a PnP pose (first order) against estimating the pose again with each intrinsic moved."""
     from dataclasses import replace
 
-    from tasks import se3
-    from tasks.intrinsics_uncertainty import pose_sensitivity
-    from tasks.poses import estimate_pose
+    from tasks.core import se3
+    from tasks.vision.intrinsics_uncertainty import pose_sensitivity
+    from tasks.vision.poses import estimate_pose
 
     cam = calibrations["camera1"].best_estimate
     obj, img, _ = next(iter(trials["camera1"].values()))

@@ -1,5 +1,5 @@
-"""Finding dropped campaigns (tasks.campaign_watch) and the recalibration ledger
-(tasks.recalibration_ledger): what counts as a campaign, what is skipped and why, the input hash,
+"""Finding dropped campaigns (tasks.campaign.watch) and the recalibration ledger
+(tasks.campaign.recalibration_ledger): what counts as a campaign, what is skipped and why, the input hash,
 and claims that exclude a second run and vanish with a killed one."""
 
 import os
@@ -10,8 +10,8 @@ import time
 
 import pytest
 
-from tasks.campaign_watch import scan_watch_dir, seconds_since_change
-from tasks.recalibration_ledger import Ledger
+from tasks.campaign.recalibration_ledger import Ledger
+from tasks.campaign.watch import scan_watch_dir, seconds_since_change
 
 
 @pytest.fixture
@@ -113,7 +113,7 @@ def test_claim_excludes_a_second_holder_and_dies_with_its_process(tmp_path):
     with ledger.claim("c1") as again:
         assert again  # released at the end of the block
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time\nfrom tasks.recalibration_ledger import Ledger\n"
+        "import sys, time\nfrom tasks.campaign.recalibration_ledger import Ledger\n"
         f"with Ledger({str(ledger.folder)!r}).claim('c1') as mine:\n"
         "    print(mine, flush=True)\n    time.sleep(60)\n")], stdout=subprocess.PIPE, text=True,
         cwd=os.path.dirname(os.path.dirname(__file__)))

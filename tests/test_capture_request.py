@@ -1,4 +1,4 @@
-"""The verification capture a lab is asked for (tasks.capture_request), no Prefect: the request's
+"""The verification capture a lab is asked for (tasks.campaign.capture_request), no Prefect: the request's
 files, and the check that each captured image was taken at the command it was asked for."""
 
 import json
@@ -7,9 +7,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.campaign_io import COMMAND_COLUMNS, MANIFEST_COLUMNS
-from tasks.capture_request import PLAN_FILE, capture_rows, check_capture_commands, has_capture, write_capture_request
-from tasks.ingest import CampaignError
+from tasks.campaign.capture_request import (
+    PLAN_FILE,
+    capture_rows,
+    check_capture_commands,
+    has_capture,
+    write_capture_request,
+)
+from tasks.campaign.folder import COMMAND_COLUMNS, MANIFEST_COLUMNS
+from tasks.campaign.ingest import CampaignError
 
 COMMANDS = np.array([[1.0, 2.0, 3.0, 10.0, 20.0], [-1.0, -2.0, -3.0, -10.0, 123.4567891]])
 

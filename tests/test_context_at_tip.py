@@ -9,17 +9,17 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.campaign_plan import CampaignPlan
-from tasks.capture_request import capture_times, planned_capture_context
-from tasks.compensation import compensate, desired_tip_poses
-from tasks.context import PoseContext
-from tasks.effects import EFFECTS, parse_effect, private_families
-from tasks.kinematics import forward, tip_pose_error
-from tasks.model_ladder import LADDER_COLUMNS, TIP_COLUMNS, add_step, compensated_tip_errors
-from tasks.prototype_errors import load_prototype_errors
-from tasks.simulate import plan_context, read_truth, write_campaign_truth
-from tasks.truth_stats import effects_change, validation_poses
-from tasks.verification_capture import capture_plan, true_campaign_errors, true_capture_errors
+from tasks.analysis.compensation import compensate, desired_tip_poses
+from tasks.analysis.model_ladder import LADDER_COLUMNS, TIP_COLUMNS, add_step, compensated_tip_errors
+from tasks.campaign.capture_request import capture_times, planned_capture_context
+from tasks.machine.context import PoseContext
+from tasks.machine.effects import EFFECTS, parse_effect, private_families
+from tasks.machine.kinematics import forward, tip_pose_error
+from tasks.simulation.campaign_plan import CampaignPlan
+from tasks.simulation.prototype_errors import load_prototype_errors
+from tasks.simulation.simulate import plan_context, read_truth, write_campaign_truth
+from tasks.simulation.truth_stats import effects_change, validation_poses
+from tasks.simulation.verification_capture import capture_plan, true_campaign_errors, true_capture_errors
 
 USER_MODULE = Path(__file__).resolve().parents[1] / "docs" / "examples" / "cross_backlash.py"
 TINY_PLAN = CampaignPlan(calibration_trials=1, images_per_trial=2, sweep_positions=2, sweep_repeats=2,
@@ -63,7 +63,7 @@ def test_truth_stats_move_by_each_context_effect_in_the_campaign_context(machine
 def hidden_campaign(tmp_path_factory, user_families):
     """The truth of a tiny campaign (no images) hiding the three HIDDEN context effects, the user's
     family given as a module and then dropped from the catalogue (an analysis that lacks it)."""
-    from tasks.effects import load_effect_modules
+    from tasks.machine.effects import load_effect_modules
 
     folder = tmp_path_factory.mktemp("hidden") / "camp"
     before = dict(EFFECTS)
@@ -97,7 +97,7 @@ def test_the_campaign_and_capture_truth_carry_each_image_context(machine, hidden
     cmds = val[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy(float)
     desired = desired_tip_poses(machine, cmds)
     clean = forward(machine, cmds, load_prototype_errors()).tool_in_workpiece()
-    from tasks.simulate import plan_campaign
+    from tasks.simulation.simulate import plan_campaign
 
     plan, _ = plan_campaign(machine, TINY_PLAN, 5)
     ctx = plan_context(plan).take(val.index.to_numpy())
@@ -164,9 +164,9 @@ CAMPAIGN_COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 / 206265) ** 2] *
 @pytest.fixture(scope="module")
 def context_campaign(machine):
     """The context plan (seed 10) at pose level: its plan, measurement frame and clean calibration."""
-    from tasks.campaign_plan import plan_campaign
     from tasks.identification.measurements import planned_measurements
     from tasks.identification.pige_identification import calibrate
+    from tasks.simulation.campaign_plan import plan_campaign
 
     plan, _ = plan_campaign(machine, CampaignPlan.context(), 10)
     frame = planned_measurements(plan, CAMPAIGN_COV)
@@ -175,7 +175,7 @@ def context_campaign(machine):
 
 
 def _noisy_poses(machine, frame, effects):
-    from tasks import se3
+    from tasks.core import se3
     from tasks.identification.measurements import Measurements
     from tasks.identification.pige_identification import synthetic_measurements
 
@@ -189,7 +189,7 @@ def _noisy_poses(machine, frame, effects):
 def _true_tip_after(machine, plan, truth, model) -> float:
     """Mean true tip position error (µm) of the validation poses compensated with ``model`` in the
     capture's planned context, each capture image in the context the simulator gives it."""
-    from tasks.capture_request import CAPTURE_GAP_IMAGES
+    from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES
 
     val = plan[plan.stage == "validation"]
     cmds = val[["X", "Y", "Z", "A", "C"]].to_numpy()
@@ -211,9 +211,9 @@ def test_on_the_context_plan_the_diagnosis_accepts_the_hidden_effect_and_adding_
     pose noise): the diagnosis accepts the family at its size (5 %), and the model with it, fitted and
     ended with the joint step, compensates the true tip to within 1.2× of the clean campaign's, where
     the model without it is off by the effect."""
-    from tasks.diagnosis import diagnose
-    from tasks.error_model import ErrorModel
+    from tasks.analysis.diagnosis import diagnose
     from tasks.identification.pige_identification import calibrate
+    from tasks.machine.error_model import ErrorModel
 
     plan, frame, clean_model = context_campaign
     effect = parse_effect(hidden)

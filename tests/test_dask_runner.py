@@ -21,7 +21,7 @@ import pytest
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from flows.runners import LOCAL_THREADS, image_task_runner, local_dask_cluster
-from tasks.campaign_plan import CampaignPlan
+from tasks.simulation.campaign_plan import CampaignPlan
 
 # enough calibration views for intrinsics (so that poses are estimated), 41 images
 PLAN = CampaignPlan(calibration_trials=2, images_per_trial=5, sweep_positions=2, sweep_repeats=1, pige_poses=3,
@@ -57,9 +57,9 @@ def test_contradictory_or_empty_requests_are_refused(address, workers, message):
 
 def test_every_submitted_task_pickles():
     """Dask sends each task object (with its cache-key function) to a worker process."""
-    from tasks.ingest_steps import check_image_chunk
-    from tasks.simulation_steps import render_images
-    from tasks.vision_steps import calibrate, detect_chunk, poses
+    from tasks.steps.ingest import check_image_chunk
+    from tasks.steps.simulation import render_images
+    from tasks.steps.vision import calibrate, detect_chunk, poses
 
     for task in (check_image_chunk, detect_chunk, calibrate, poses, render_images):
         copy = pickle.loads(cloudpickle.dumps(task))
@@ -67,7 +67,7 @@ def test_every_submitted_task_pickles():
 
 
 def read_tables(root, campaign_id: str) -> dict[str, pd.DataFrame]:
-    from tasks.results_lake import read_table
+    from tasks.lake.store import read_table
 
     out = {}
     for name in MEASURE_TABLES:
@@ -83,7 +83,7 @@ def test_measure_on_two_dask_workers_gives_identical_tables(prefect_harness, tmp
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
 
     from flows.measure import measure_campaign
-    from tasks.simulate import write_campaign
+    from tasks.simulation.simulate import write_campaign
 
     folder = write_campaign(tmp_path / "dask", "dask", seed=11, size="small", plan=PLAN)
     chunk_size = 6  # 7 detection chunks, so that both workers get some
@@ -121,7 +121,7 @@ def test_fivecal_ingest_on_a_local_cluster_uses_one_prefect_server(prefect_harne
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, temporary_settings
 
     from flows.ingest import run_ingest
-    from tasks.results_lake import read_table
+    from tasks.lake.store import read_table
 
     campaign = campaign_copy("dasklocal")
     with temporary_settings(updates={PREFECT_LOCAL_STORAGE_PATH: tmp_path / "storage-threads"}):

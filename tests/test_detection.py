@@ -1,9 +1,9 @@
 """Tests of dot-grid detection (tasks/detection): accuracy against renderer truth, ordering,
 polarity, clutter, rejection of bad views, baselines, and the maths underneath.
 
-Images come from ``tasks.render`` (realistic: distortion, defocus, vignetting, gradient, noise) at
+Images come from ``tasks.simulation.render`` (realistic: distortion, defocus, vignetting, gradient, noise) at
 full size (3072×2048) for accuracy claims and at the 4× binned size (768×512) elsewhere; the
-clutter and defect tests use ``tasks.detection.synthetic`` (homography-only, with clutter).
+clutter and defect tests use ``tasks.vision.detection.synthetic`` (homography-only, with clutter).
 Every image is seeded: the file is deterministic.
 """
 
@@ -15,15 +15,17 @@ import cv2
 import numpy as np
 import pytest
 
-from tasks.camera_model import CameraModel
-from tasks.detection import DETECTORS, GridDetection, detect_grid
-from tasks.detection.chaincode import filter_edges
-from tasks.detection.conics import ellipse_params, fit_conic_lsq, ransac_ellipse
-from tasks.detection.framework import FrameworkParams, detect_rrht
-from tasks.detection.grid import build_lattice, order_grid, reduce_lattice
-from tasks.detection.perspective import centre_bias, correct_bias
-from tasks.detection.subpixel import SubpixelParams
-from tasks.detection.synthetic import (
+from tasks.machine.plate import DotPlate, facing_camera_pose
+from tasks.simulation.render import ImagingConditions, render_plate_image, true_dot_centres
+from tasks.vision.camera_model import CameraModel
+from tasks.vision.detection import DETECTORS, GridDetection, detect_grid
+from tasks.vision.detection.chaincode import filter_edges
+from tasks.vision.detection.conics import ellipse_params, fit_conic_lsq, ransac_ellipse
+from tasks.vision.detection.framework import FrameworkParams, detect_rrht
+from tasks.vision.detection.grid import build_lattice, order_grid, reduce_lattice
+from tasks.vision.detection.perspective import centre_bias, correct_bias
+from tasks.vision.detection.subpixel import SubpixelParams
+from tasks.vision.detection.synthetic import (
     SyntheticConditions,
     apply_homography,
     design_camera,
@@ -31,8 +33,6 @@ from tasks.detection.synthetic import (
     plate_homography,
     render_synthetic,
 )
-from tasks.plate import DotPlate, facing_camera_pose
-from tasks.render import ImagingConditions, render_plate_image, true_dot_centres
 
 DIST = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
 CAM1 = CameraModel(3072, 2048, 0.0024, 16.0, 1541.3, 1019.8, DIST, focus_distance_mm=300.0, f_number=8.0)
@@ -427,7 +427,7 @@ def test_vignetting_and_uneven_light_do_not_move_blurred_dot_centres():
 
 
 def test_pixel_edge_fit_does_not_lock_to_the_pixel_grid():
-    """The pixel-level edge fit (tasks.detection.edge_fit) against the ray rim fit alone.
+    """The pixel-level edge fit (tasks.vision.detection.edge_fit) against the ray rim fit alone.
 
     A frontal plate a at 300 mm (true intrinsics without distortion, noise-free, in focus: edge
     blur ≈ 1.0 px) moved by quarter pixels: the rim fit's centre errors depend on each rim's
@@ -435,9 +435,9 @@ def test_pixel_edge_fit_does_not_lock_to_the_pixel_grid():
     that changes sign with the shift (±17″, 0.0012 px RMS when measured). Fitting the blurred
     ellipse edge to the pixels removes it (≤ 1.5″, 0.0004 px).
     """
-    from tasks import se3
-    from tasks.error_model import ARCSEC
-    from tasks.poses import estimate_pose
+    from tasks.core import se3
+    from tasks.machine.error_model import ARCSEC
+    from tasks.vision.poses import estimate_pose
 
     cam = dataclasses.replace(CAM1, distortion=(0.0,) * 5, cx_px=1535.5, cy_px=1023.5)
     obj = PLATE_A.dot_centres_mm()
@@ -463,9 +463,9 @@ def test_pixel_edge_fit_does_not_lock_to_the_pixel_grid():
 
 
 def test_pixel_edge_fit_jacobian_matches_finite_differences():
-    """The edge fit's analytic Jacobian (tasks.detection.edge_fit.dot_model) against central
+    """The edge fit's analytic Jacobian (tasks.vision.detection.edge_fit.dot_model) against central
     differences, for two ellipses (one tilted, one near-circular) on pixels across the rim."""
-    from tasks.detection.edge_fit import N_PARAMS, dot_model
+    from tasks.vision.detection.edge_fit import N_PARAMS, dot_model
 
     rng = np.random.default_rng(0)
     q = np.array([[10.2, 11.3, 8.0, 6.5, 0.4, 30.0, 200.0, 0.9, 1e-3, -2e-3],
@@ -483,7 +483,7 @@ def test_pixel_edge_fit_jacobian_matches_finite_differences():
 def test_pixel_edge_fit_normal_equations_match_the_model_and_its_jacobian():
     """The fit's compiled normal equations (JᵀWJ, JᵀWr, Σ w r²) against the same sums formed from
     dot_model's values and Jacobian, with some pixels weighted out (which are then not evaluated)."""
-    from tasks.detection.edge_fit import _normal_equations, dot_model
+    from tasks.vision.detection.edge_fit import _normal_equations, dot_model
 
     rng = np.random.default_rng(1)
     q = np.array([[10.2, 11.3, 8.0, 6.5, 0.4, 30.0, 200.0, 0.9, 1e-3, -2e-3],

@@ -1,4 +1,4 @@
-"""The RRHT detector on the renderer's stress set (tasks.detection.stress): what photographs add.
+"""The RRHT detector on the renderer's stress set (tasks.vision.detection.stress): what photographs add.
 
 Each case is rendered with exact ground truth (projected 3-D dot centres); the detector gets no
 scale hint and no rotation prior, as ``fivecal detect`` runs it. Labels are compared up to the
@@ -14,11 +14,11 @@ import pytest
 from typer.testing import CliRunner
 
 from fivecal.cli import app
-from tasks.detection import detect_grid
-from tasks.detection.debug_image import BANNER_FAIL, BANNER_OK, draw_detection
-from tasks.detection.framework import FrameworkParams, detect_rrht
-from tasks.detection.stress import STRESS_CASES, errors_up_to_symmetry, render_stress_case
-from tasks.detection.subpixel import SubpixelParams
+from tasks.vision.detection import detect_grid
+from tasks.vision.detection.debug_image import BANNER_FAIL, BANNER_OK, draw_detection
+from tasks.vision.detection.framework import FrameworkParams, detect_rrht
+from tasks.vision.detection.stress import STRESS_CASES, errors_up_to_symmetry, render_stress_case
+from tasks.vision.detection.subpixel import SubpixelParams
 
 CASES = {c.name: c for c in STRESS_CASES}
 SMALL_PHONE = replace(CASES["phone-12mp"], name="phone-3mp", width=1512, height=2016, dot_px=75.0)
@@ -111,9 +111,9 @@ def test_debug_image_shows_the_verdict_and_the_cli_writes_it(tmp_path):
 
 
 def test_region_contours_alone_find_the_grid():
-    """The fallback candidates (tasks.detection.blobs) on their own: no Hough circle is accepted."""
-    from tasks.detection.framework import FrameworkParams, detect_rrht
-    from tasks.detection.rrht import RRHTParams
+    """The fallback candidates (tasks.vision.detection.blobs) on their own: no Hough circle is accepted."""
+    from tasks.vision.detection.framework import FrameworkParams, detect_rrht
+    from tasks.vision.detection.rrht import RRHTParams
 
     case = CASES["fisheye"]
     image, truth = render_stress_case(case)
@@ -124,7 +124,7 @@ def test_region_contours_alone_find_the_grid():
 
 
 def test_local_homographies_match_opencv_on_exact_points():
-    from tasks.detection.perspective import correct_bias, correct_bias_local, fit_homography, local_homographies
+    from tasks.vision.detection.perspective import correct_bias, correct_bias_local, fit_homography, local_homographies
 
     rng = np.random.default_rng(3)
     h = np.array([[40.0, 3.0, 300.0], [-2.0, 38.0, 250.0], [1e-3, -2e-3, 1.0]])
@@ -144,8 +144,8 @@ def test_local_homographies_match_opencv_on_exact_points():
 
 def test_candidate_fit_far_off_the_image_is_no_rim():
     """A candidate refitted to a centre far outside the coarse map (seen on tilt-50, seed 108) has no rim."""
-    from tasks.detection.edges import canny_edges, direction_codes
-    from tasks.detection.rrht import RRHTParams, fit_candidates
+    from tasks.vision.detection.edges import canny_edges, direction_codes
+    from tasks.vision.detection.rrht import RRHTParams, fit_candidates
 
     image, _ = render_stress_case(replace(CASES["tilt-50"], seed=108))
     em = canny_edges(image)
@@ -157,9 +157,9 @@ def test_candidate_fit_far_off_the_image_is_no_rim():
 
 
 def test_appearance_test_keeps_dots_and_drops_rings_and_shadow_edges():
-    """tasks.detection.verify: a filled dot passes, also with a shadow edge across it; the rim of
+    """tasks.vision.detection.verify: a filled dot passes, also with a shadow edge across it; the rim of
     a ring (a letter O) and a disc on a patch of its own grey level do not."""
-    from tasks.detection.verify import dot_fill
+    from tasks.vision.detection.verify import dot_fill
 
     img = np.full((200, 400), 210, np.uint8)
     cv2.circle(img, (50, 100), 20, 30, -1, cv2.LINE_AA)  # a dot

@@ -1,4 +1,4 @@
-"""The Table 4 detector comparison (tasks.detector_comparison).
+"""The Table 4 detector comparison (tasks.vision.detector_comparison).
 
 A 15-image full-size (3072×2048) campaign is simulated once per module (~4 s): the accuracy claims
 of the paper are about full-size images. Only a handful of its images go through the detectors.
@@ -15,11 +15,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.camera_model import CameraModel
-from tasks.campaign_plan import CampaignPlan
-from tasks.detection import GridDetection
-from tasks.detection import api as detection_api
-from tasks.detector_comparison import (
+from tasks.lake.store import read_provenance, read_table, write_partition
+from tasks.machine.plate import DotPlate
+from tasks.simulation.campaign_plan import CampaignPlan
+from tasks.vision.camera_model import CameraModel
+from tasks.vision.detection import GridDetection
+from tasks.vision.detection import api as detection_api
+from tasks.vision.detector_comparison import (
     ALL_CAMERAS,
     RUN_COLUMNS,
     SUMMARY_COLUMNS,
@@ -36,8 +38,6 @@ from tasks.detector_comparison import (
     summarise_runs,
     symmetric_labellings,
 )
-from tasks.plate import DotPlate
-from tasks.results_lake import read_provenance, read_table, write_partition
 
 DETECTORS = ("rrht", "blob", "hough")
 
@@ -51,7 +51,7 @@ def true_cameras(folder: Path) -> dict[str, CameraModel]:
 def full_campaign(tmp_path_factory) -> Path:
     """15 full-size images: 4 calibration views per camera, one position of each axis sweep,
     one PIGE and one validation pose."""
-    from tasks.simulate import write_campaign
+    from tasks.simulation.simulate import write_campaign
 
     plan = CampaignPlan(calibration_trials=1, images_per_trial=4, sweep_positions=1, sweep_repeats=1,
                         pige_poses=1, validation_poses=1)

@@ -22,19 +22,19 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tasks import se3
-from tasks.campaign_plan import CampaignPlan, plan_campaign
-from tasks.diagnosis import cross_validated_rms, diagnose, load_effect_modules
-from tasks.diagnosis.imaging import imaging_bias
-from tasks.diagnosis.pdge_response import axis_responses
-from tasks.effects import EFFECTS, parse_effect
-from tasks.error_model import ARCSEC, COMPONENT_SCALE, ErrorModel
+from tasks.analysis.diagnosis import cross_validated_rms, diagnose, load_effect_modules
+from tasks.analysis.residuals import pose_residual_table, trend_summary
+from tasks.core import se3
+from tasks.identification.imaging import imaging_bias
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS, extract_pdges
+from tasks.identification.pdge_response import axis_responses
 from tasks.identification.pige_identification import calibrate, synthetic_measurements
 from tasks.identification.uncertainty import NOISE_DRAWS, propagate_uncertainty
-from tasks.prototype_errors import load_prototype_errors
-from tasks.residuals import pose_residual_table, trend_summary
+from tasks.machine.effects import EFFECTS, parse_effect
+from tasks.machine.error_model import ARCSEC, COMPONENT_SCALE, ErrorModel
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 COV = np.diag([0.25e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])
 PLAN = CampaignPlan(sweep_positions=50, sweep_repeats=2, pige_poses=150, validation_poses=30,
@@ -225,7 +225,7 @@ def test_an_added_effect_the_campaign_lacks_is_fitted_consistent_with_zero_under
     table's note says so.
 
     A focal drift's signature depends on the plate the camera sees (its dots are re-posed through
-    the scaled camera, tasks.diagnosis.imaging). Seen on the prototype's 66 mm plate a, it is
+    the scaled camera, tasks.identification.imaging). Seen on the prototype's 66 mm plate a, it is
     nearly a combination of the PDGE profiles and constants (the fit's smallest singular value
     halves) and is reported unidentifiable, with no value; the check of the propagation is made on
     the 54 × 36 mm plate a of before, where the fit still gives it a value. The poses are the
@@ -252,9 +252,9 @@ USER_EFFECT = '''
     """A user's effect: a periodic error in time along a linear axis (e.g. a coolant pump's cycle)."""
     import numpy as np
 
-    from tasks.effects import Effect, Param, register
-    from tasks.error_model import UM
-    from tasks.machine import AXIS_ORDER
+    from tasks.machine.effects import Effect, Param, register
+    from tasks.machine.error_model import UM
+    from tasks.machine.description import AXIS_ORDER
 
 
     @register
@@ -343,9 +343,9 @@ def test_camera_effects_act_on_the_pose_as_a_pnp_with_the_calibrated_intrinsics_
     tilts it. Agreement within 2 % of the bias (second-order terms of a 30 µm shift)."""
     import cv2
 
-    from tasks.campaign_plan import five_axis_poses
-    from tasks.kinematics import forward
-    from tasks.render import ExtraDistortion, project_points_ext
+    from tasks.machine.kinematics import forward
+    from tasks.simulation.campaign_plan import five_axis_poses
+    from tasks.simulation.render import ExtraDistortion, project_points_ext
 
     cmds = five_axis_poses(machine, 3, PLAN, np.random.default_rng(1))
     T = forward(machine, cmds).camera_view("camera1")
@@ -370,7 +370,7 @@ def test_with_nothing_accepted_the_verdict_names_what_the_residual_follows():
     nothing when no panel is significant or the camera has none."""
     import pandas as pd
 
-    from tasks.diagnosis.verdict import residual_follows_sentence
+    from tasks.analysis.diagnosis.verdict import residual_follows_sentence
 
     trends = pd.DataFrame({
         "camera": ["camera1", "camera1", "camera1", "camera1", "camera2"],
@@ -391,7 +391,7 @@ def test_panels_flagged_as_often_as_chance_flags_them_name_no_variable():
     smallest (0.01) does not survive the false-discovery control over the hundred."""
     import pandas as pd
 
-    from tasks.diagnosis.verdict import residual_follows_sentence
+    from tasks.analysis.diagnosis.verdict import residual_follows_sentence
 
     p = np.linspace(0.01, 1.0, 100)
     trends = pd.DataFrame({"camera": "camera1", "variable": [f"v{i % 7}" for i in range(100)],

@@ -178,8 +178,8 @@ def test_dispense_job_flow_on_a_simulated_tray(calibrated_campaign, prefect_harn
     on properly calibrated campaigns, docs/dispense-job.md.)"""
     from flows.dispense_job import dispense_job
     from tasks.dispense_job.tray_io import simulate_tray
-    from tasks.lake_schema import TABLES, partition_problems
-    from tasks.results_lake import read_table
+    from tasks.lake.schema import TABLES, partition_problems
+    from tasks.lake.store import read_table
 
     tray = simulate_tray(tmp_path / "trays" / "t1.png", calibrated_campaign.campaign, seed=7, boards=6,
                          spec=TraySpec(defect_rate=0.0))

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from tasks.effects import EFFECTS, recorded_effects
+from tasks.machine.effects import EFFECTS, recorded_effects
 
 USER_MODULE = Path(__file__).resolve().parents[1] / "docs" / "examples" / "cross_backlash.py"
 SPECS = ["cross_backlash:axis=X,along=Y,amount_um=6", "backlash:axis=Z,amount_um=3,amount_arcsec=0"]

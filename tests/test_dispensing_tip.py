@@ -5,14 +5,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tasks.compensation import compensate, desired_tip_poses
+from tasks.analysis.compensation import compensate, desired_tip_poses
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset, landing_points, tool_offset_of
 from tasks.dispensing.workpiece import Workpiece, ring_layout
-from tasks.effects import ToolOffset
-from tasks.error_model import ErrorModel
-from tasks.kinematics import forward
-from tasks.machine import load_machine
-from tasks.prototype_errors import load_prototype_errors
+from tasks.machine.description import load_machine
+from tasks.machine.effects import ToolOffset
+from tasks.machine.error_model import ErrorModel
+from tasks.machine.kinematics import forward
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 TRUE_OFFSET_UM = np.array([1.9, -2.1, 10.8])  # the constant of seed 43 in issue 31
 

@@ -1,4 +1,4 @@
-"""Drift science (tasks.drift) and the drift report (tasks.drift_report) on synthetic lake tables
+"""Drift science (tasks.analysis.drift) and the drift report (tasks.report.drift_report) on synthetic lake tables
 with a known drift: exact values, which rule flags, the verdict, and the written report."""
 
 import math
@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.drift import (
+from tasks.analysis.drift import (
     PDGE_COMPONENTS,
     DriftTolerance,
     campaign_objectives,
@@ -16,7 +16,7 @@ from tasks.drift import (
     verdict,
     verification_summary,
 )
-from tasks.drift_report import DriftReportData, write_drift_report
+from tasks.report.drift_report import DriftReportData, write_drift_report
 
 REF, LATER = "b-ref", "a-later"  # ids sort the other way round from their capture times
 

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from tasks.context import PoseContext
-from tasks.effects import EFFECTS, catalogue_text, parse_effect
-from tasks.error_model import ARCSEC, UM, ErrorModel
-from tasks.kinematics import forward
-from tasks.render import true_dot_centres
-from tasks.simulate import camera_for_image
+from tasks.machine.context import PoseContext
+from tasks.machine.effects import EFFECTS, catalogue_text, parse_effect
+from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.kinematics import forward
+from tasks.simulation.render import true_dot_centres
+from tasks.simulation.simulate import camera_for_image
 
 
 def tip_shift_um(machine, spec, cmds, context=None):

@@ -10,9 +10,9 @@ import pandas as pd
 import pytest
 
 from flows.calibrate import calibrate_campaign
-from tasks.ingest import CampaignError
-from tasks.reproduce import opencv_threads
-from tasks.results_lake import read_table
+from flows.reproduce import opencv_threads
+from tasks.campaign.ingest import CampaignError
+from tasks.lake.store import read_table
 
 
 def test_rerun_is_served_from_the_cache_and_an_added_effect_refits_without_image_work(

@@ -8,12 +8,12 @@ import numpy as np
 import pandas as pd
 
 from flows.dispense import dispense_test
+from flows.reproduce import opencv_threads
+from tasks.campaign.ingest import load_campaign_metadata
 from tasks.dispensing.workpiece import Workpiece
-from tasks.effects import EFFECTS
-from tasks.ingest import load_campaign_metadata
-from tasks.lake_schema import partition_problems
-from tasks.reproduce import opencv_threads
-from tasks.results_lake import partition_path, read_provenance, read_table, write_partition
+from tasks.lake.schema import partition_problems
+from tasks.lake.store import partition_path, read_provenance, read_table, write_partition
+from tasks.machine.effects import EFFECTS
 
 SMALL = Workpiece(rings=20)
 USER_MODULE = Path(__file__).resolve().parents[1] / "docs" / "examples" / "cross_backlash.py"

@@ -14,8 +14,8 @@ import pandas as pd
 import pytest
 
 from flows.ingest import ingest_campaign, run_ingest
-from tasks.ingest import CHUNK_SIZE, CampaignError
-from tasks.results_lake import read_provenance, read_table
+from tasks.campaign.ingest import CHUNK_SIZE, CampaignError
+from tasks.lake.store import read_provenance, read_table
 
 pytestmark = pytest.mark.flow
 

@@ -7,10 +7,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks import se3
-from tasks.campaign_plan import CampaignPlan
-from tasks.results_lake import read_table
-from tasks.simulate import write_campaign
+from tasks.core import se3
+from tasks.lake.store import read_table
+from tasks.simulation.campaign_plan import CampaignPlan
+from tasks.simulation.simulate import write_campaign
 
 pytestmark = pytest.mark.flow
 

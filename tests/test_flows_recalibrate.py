@@ -10,11 +10,11 @@ import pytest
 from prefect import flow
 
 import flows.recalibrate as recalibrate
-from tasks.campaign_plan import CampaignPlan
-from tasks.lake_schema import partition_problems
-from tasks.recalibration_ledger import Ledger
-from tasks.results_lake import read_table
-from tasks.simulate import write_campaign
+from tasks.campaign.recalibration_ledger import Ledger
+from tasks.lake.schema import partition_problems
+from tasks.lake.store import read_table
+from tasks.simulation.campaign_plan import CampaignPlan
+from tasks.simulation.simulate import write_campaign
 
 pytestmark = pytest.mark.flow
 

@@ -3,7 +3,7 @@
 import pandas as pd
 import pytest
 
-from tasks.campaign_plan import CampaignPlan
+from tasks.simulation.campaign_plan import CampaignPlan
 
 pytestmark = pytest.mark.flow
 

@@ -14,8 +14,9 @@ import copy
 import numpy as np
 import pytest
 
-from tasks.error_model import ARCSEC, PIGE_SCREWS, UM, ErrorModel
-from tasks.formulations import (
+from tasks.machine.description import machine_from_dict
+from tasks.machine.error_model import ARCSEC, PIGE_SCREWS, UM, ErrorModel
+from tasks.machine.formulations import (
     DH,
     GLOBAL_POE,
     LOCAL_POE,
@@ -30,8 +31,7 @@ from tasks.formulations import (
     global_poe_tool_in_workpiece,
     local_poe_tool_in_workpiece,
 )
-from tasks.kinematics import forward, position_orientation_error
-from tasks.machine import machine_from_dict
+from tasks.machine.kinematics import forward, position_orientation_error
 
 
 def random_commands(n, seed, machine=None):

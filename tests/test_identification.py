@@ -7,10 +7,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks import se3
-from tasks.campaign_plan import CampaignPlan, plan_campaign
-from tasks.compensation import compensate, desired_tip_poses
-from tasks.error_model import ARCSEC, ErrorModel
+from tasks.analysis.compensation import compensate, desired_tip_poses
+from tasks.analysis.verification import (
+    capture_errors,
+    capture_image_id,
+    modelled_errors,
+    noise_floor,
+    tool_direction_noise_floor,
+    validation_id_of,
+)
+from tasks.core import se3
 from tasks.identification.levenberg_marquardt import levenberg_marquardt
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS, extract_pdges
@@ -22,18 +28,12 @@ from tasks.identification.pige_identification import (
     null_space_sentences,
     synthetic_measurements,
 )
-from tasks.kinematics import forward, tip_pose_error
-from tasks.machine import AXIS_ORDER
-from tasks.poses import COV_COLUMNS, POSE_COLUMNS
-from tasks.prototype_errors import load_prototype_errors
-from tasks.verification import (
-    capture_errors,
-    capture_image_id,
-    modelled_errors,
-    noise_floor,
-    tool_direction_noise_floor,
-    validation_id_of,
-)
+from tasks.machine.description import AXIS_ORDER
+from tasks.machine.error_model import ARCSEC, ErrorModel
+from tasks.machine.kinematics import forward, tip_pose_error
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.simulation.prototype_errors import load_prototype_errors
+from tasks.vision.poses import COV_COLUMNS, POSE_COLUMNS
 
 COV = np.diag([0.2e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])
 
@@ -145,7 +145,7 @@ def test_compensation_places_the_tip_and_leaves_only_what_five_axes_cannot_turn(
     tool (the singular pose at A ≈ 0 is among these poses)."""
     truth = load_prototype_errors()
     rng = np.random.default_rng(2)
-    from tasks.campaign_plan import five_axis_poses
+    from tasks.simulation.campaign_plan import five_axis_poses
 
     cmds = five_axis_poses(machine, 40, CampaignPlan(), rng)
     cmds[0, 3] = 0.2  # next to the singular pose
@@ -179,7 +179,7 @@ def test_tool_axis_compensation_puts_the_tool_direction_right_where_full_trades_
     but tens of arcsec of tool direction. Next to the singular pose (A = 0) the tool-axis solution
     turns C by about 19°; at C = −179.9° that leaves C's stroke, and the pose keeps its full
     compensation, saying so."""
-    from tasks.campaign_plan import five_axis_poses
+    from tasks.simulation.campaign_plan import five_axis_poses
 
     truth = load_prototype_errors()
     cmds = five_axis_poses(machine, 40, CampaignPlan(), np.random.default_rng(2))
@@ -257,8 +257,8 @@ def test_expected_tip_errors_are_the_tip_changes_the_model_uncertainty_makes(mac
     """One camera re-fit and no noise draws: the expected errors are exactly how far that model moves
     the tip from the identified one, by the verification's own measures (position, whole rotation,
     tool direction); a re-fit that only spins the tip about the tool axis leaves the tool direction."""
+    from tasks.analysis.verification import tip_errors_with_tool_direction
     from tasks.identification.uncertainty import PropagatedUncertainty, expected_tip_errors
-    from tasks.verification import tip_errors_with_tool_direction
 
     commands = _measurements(machine, plan_campaign(machine, SMALL, 5)[0]).stage("validation").commands
     moved = replace(errors, pige={**errors.pige, "beta_AY": errors.pige["beta_AY"] + 20 * ARCSEC,

@@ -1,4 +1,4 @@
-"""Tests of ingest (tasks/ingest.py) and the results lake (tasks/results_lake.py), without Prefect.
+"""Tests of ingest (tasks/campaign/ingest.py) and the results lake (tasks/lake/store.py), without Prefect.
 
 Each bad-input test damages a copy of the 18-image tiny campaign (tests/conftest.py) in one way
 and checks that exactly the damaged row gets the expected status, a message naming its manifest
@@ -19,8 +19,7 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from tasks import results_lake
-from tasks.ingest import (
+from tasks.campaign.ingest import (
     IMAGES_COLUMNS,
     STATUS_CODES,
     CampaignError,
@@ -33,7 +32,8 @@ from tasks.ingest import (
     load_manifest,
     summarise,
 )
-from tasks.results_lake import read_provenance, read_table, write_partition
+from tasks.lake import store as results_lake
+from tasks.lake.store import read_provenance, read_table, write_partition
 
 N_IMAGES = 18  # C sweeps both stroke ends and home: 3 positions where the others have 2
 

@@ -23,8 +23,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tasks.campaign_io import MANIFEST_COLUMNS
-from tasks.ingest import CampaignError, load_campaign_metadata, read_checked_manifest
+from tasks.campaign.folder import MANIFEST_COLUMNS
+from tasks.campaign.ingest import CampaignError, load_campaign_metadata, read_checked_manifest
 
 FUZZ = settings(max_examples=100, deadline=5000, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -70,7 +70,7 @@ def _check_metadata_text(folder: Path, text: str | bytes) -> None:
     except CampaignError as e:
         assert str(e).startswith(str(target)), e
         return
-    from tasks.vision import campaign_plates, nominal_machine
+    from tasks.vision.pipeline import campaign_plates, nominal_machine
 
     campaign_plates(meta)
     nominal_machine(meta)

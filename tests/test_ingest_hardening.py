@@ -22,9 +22,15 @@ import pytest
 from typer.testing import CliRunner
 
 from fivecal.cli import app
-from tasks import ingest
-from tasks.ingest import CampaignError, check_campaign, chunk_content_key, ingest_provenance, load_campaign_metadata
-from tasks.results_lake import write_partition
+from tasks.campaign import ingest
+from tasks.campaign.ingest import (
+    CampaignError,
+    check_campaign,
+    chunk_content_key,
+    ingest_provenance,
+    load_campaign_metadata,
+)
+from tasks.lake.store import write_partition
 
 N_IMAGES = 18
 runner = CliRunner()
@@ -117,7 +123,7 @@ def test_metadata_breaking_the_schema_is_a_campaign_fault_naming_the_key(campaig
 
 
 def test_the_clean_metadata_builds_the_machine_and_plates_the_analysis_uses(tiny_campaign):
-    from tasks.vision import campaign_plates, nominal_machine
+    from tasks.vision.pipeline import campaign_plates, nominal_machine
 
     meta = load_campaign_metadata(tiny_campaign)
     assert set(campaign_plates(meta)) == set(meta["plates"])

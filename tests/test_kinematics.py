@@ -3,13 +3,13 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tasks.context import PoseContext, approach_directions
-from tasks.effects import parse_effect
-from tasks.error_model import ARCSEC, PIGE_SCREWS, UM
-from tasks.inverse_kinematics import inverse
-from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER
-from tasks.prototype_errors import load_prototype_errors
+from tasks.machine.context import PoseContext, approach_directions
+from tasks.machine.description import AXIS_ORDER
+from tasks.machine.effects import parse_effect
+from tasks.machine.error_model import ARCSEC, PIGE_SCREWS, UM
+from tasks.machine.inverse_kinematics import inverse
+from tasks.machine.kinematics import forward
+from tasks.simulation.prototype_errors import load_prototype_errors
 
 
 def homogeneous(R=None, p=(0.0, 0.0, 0.0)):

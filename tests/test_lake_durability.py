@@ -1,5 +1,5 @@
 """The results lake's files follow the umask, are fsync'd (file and folders) around the rename
-and swap, and a step's tables are replaced together or not at all (tasks/results_lake.py)."""
+and swap, and a step's tables are replaced together or not at all (tasks/lake/store.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from tasks import campaign_io, results_lake
-from tasks.results_lake import read_table, write_partition, write_partitions
+from tasks.lake.store import read_table, write_partition, write_partitions
 
 
 def rows(value: float) -> pd.DataFrame:

@@ -14,14 +14,14 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from tasks.lake_query import run_query
-from tasks.results_lake import STAGING_DIR, partition_path, read_provenance, read_table, write_partition
+from tasks.lake.query import run_query
+from tasks.lake.store import STAGING_DIR, partition_path, read_provenance, read_table, write_partition
 
 REPO = Path(__file__).resolve().parents[1]
 CHILD = """
 import sys
 import numpy as np, pandas as pd
-from tasks.results_lake import write_partition
+from tasks.lake.store import write_partition
 root, n, versions = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 i = np.arange(n)
 for v in range(1, versions + 1):

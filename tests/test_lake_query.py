@@ -12,8 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from fivecal.cli import app
-from tasks.lake_query import LakeQueryError, format_result, run_query, table_folders
-from tasks.results_lake import read_table, write_partition
+from tasks.lake.query import LakeQueryError, format_result, run_query, table_folders
+from tasks.lake.store import read_table, write_partition
 
 runner = CliRunner()
 QUERIES_DOC = Path(__file__).resolve().parents[1] / "docs" / "queries.md"

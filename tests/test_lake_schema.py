@@ -1,4 +1,4 @@
-"""The lake as a contract: every table's files match tasks/lake_schema.py and carry schema_version and
+"""The lake as a contract: every table's files match tasks/lake/schema.py and carry schema_version and
 provenance; the doc is generated from the registry."""
 
 import shutil
@@ -11,9 +11,9 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from tasks import lake_schema
-from tasks.lake_schema import TABLES, schema_problems
-from tasks.results_lake import partition_path, read_provenance, read_table, write_partition
+from tasks.lake import schema as lake_schema
+from tasks.lake.schema import TABLES, schema_problems
+from tasks.lake.store import partition_path, read_provenance, read_table, write_partition
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "results-schema.md"
 CALIBRATE_TABLES = ("pdge", "pige", "compensation", "verification", "formulations")
@@ -39,7 +39,7 @@ def test_registry_has_every_table_of_today():
 
 
 def test_the_doc_is_generated_from_the_registry():
-    assert lake_schema.doc_is_current(DOC), "run: python -m tasks.lake_schema --write docs/results-schema.md"
+    assert lake_schema.doc_is_current(DOC), "run: python -m tasks.lake.schema --write docs/results-schema.md"
     text = DOC.read_text()
     for t in TABLES.values():
         assert f"### `{t.name}` (schema version {t.version})" in text
@@ -49,10 +49,10 @@ def test_the_doc_is_generated_from_the_registry():
 def test_check_command_fails_on_a_stale_doc(tmp_path):
     stale = tmp_path / "results-schema.md"
     stale.write_text(DOC.read_text().replace("| `value` | float64 |", "| `value` | int64 |"))
-    run = subprocess.run([sys.executable, "-m", "tasks.lake_schema", "--check", str(stale)],
+    run = subprocess.run([sys.executable, "-m", "tasks.lake.schema", "--check", str(stale)],
                          capture_output=True, text=True, cwd=DOC.parents[1])
     assert run.returncode == 1 and "differ" in run.stderr
-    subprocess.run([sys.executable, "-m", "tasks.lake_schema", "--write", str(stale)], check=True, cwd=DOC.parents[1])
+    subprocess.run([sys.executable, "-m", "tasks.lake.schema", "--write", str(stale)], check=True, cwd=DOC.parents[1])
     assert lake_schema.doc_is_current(stale)
 
 
@@ -103,7 +103,7 @@ def test_schema_problems_names_missing_extra_and_retyped_columns(tmp_path):
     assert "formulations: column extra (float64) is not in the registry" in problems
     assert "formulations: column note (string) missing from the file" in problems
     assert schema_problems("nope", pq.read_schema(path)) == ["table 'nope' is not in the registry "
-                                                             "(tasks/lake_schema.py)"]
+                                                             "(tasks/lake/schema.py)"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -115,13 +115,13 @@ def _write_residual_tables(campaign: Path, root: Path) -> None:
     """The residuals, dot_residuals and model_ladder partitions of ``campaign``, written by their science
     functions from its lake, for as long as flows/calibrate.py does not write them itself."""
     import fivecal
-    from tasks.detector_comparison import intrinsics_from_table
+    from tasks.analysis.model_ladder import append_step, ladder_step
+    from tasks.analysis.residuals import dot_residual_table, plates_of, pose_residual_table
+    from tasks.campaign.ingest import load_campaign_metadata
     from tasks.identification.measurements import assemble_measurements
     from tasks.identification.pige_identification import calibrate
-    from tasks.ingest import load_campaign_metadata
-    from tasks.model_ladder import append_step, ladder_step
-    from tasks.residuals import dot_residual_table, plates_of, pose_residual_table
-    from tasks.vision import content_key, nominal_machine
+    from tasks.vision.detector_comparison import intrinsics_from_table
+    from tasks.vision.pipeline import content_key, nominal_machine
 
     metadata = load_campaign_metadata(campaign)
     campaign_id = metadata["campaign_id"]
@@ -144,7 +144,7 @@ def _write_residual_tables(campaign: Path, root: Path) -> None:
 def lake(calibrated_campaign, tmp_path_factory):
     """The calibrated campaign's lake plus a detector_comparison partition (written into a copy), and the
     residual tables where the calibrate flow has not written them."""
-    from tasks.detector_comparison import run_comparison
+    from tasks.vision.detector_comparison import run_comparison
 
     root = tmp_path_factory.mktemp("lake") / "results"
     shutil.copytree(calibrated_campaign.results, root)

@@ -1,6 +1,6 @@
-"""A plate partly out of the image, measured on the dots inside it (tasks/detection/partial_view).
+"""A plate partly out of the image, measured on the dots inside it (tasks/vision/detection/partial_view).
 
-Full-size renders (tasks.render: distortion, defocus, vignetting, noise) of a 66 mm plate that
+Full-size renders (tasks.simulation.render: distortion, defocus, vignetting, noise) of a 66 mm plate that
 a 50 mm sweep carries partly out of camera 1's field, checked against the renderer's true dot
 centres and the true pose; the prior is the true projection moved as a nominal model would be
 off (a fraction of the pitch). Every image is seeded: the file is deterministic.
@@ -12,14 +12,14 @@ import cv2
 import numpy as np
 import pytest
 
-from tasks.camera_model import CameraModel
-from tasks.detection import detect_grid
-from tasks.detection.framework import cut_by_border
-from tasks.detection.partial_view import MIN_FRACTION
-from tasks.plate import DotPlate, facing_camera_pose
-from tasks.poses import RAD_TO_ARCSEC, estimate_pose
-from tasks.render import ImagingConditions, render_plate_image, true_dot_centres
-from tasks.se3 import log
+from tasks.core.se3 import log
+from tasks.machine.plate import DotPlate, facing_camera_pose
+from tasks.simulation.render import ImagingConditions, render_plate_image, true_dot_centres
+from tasks.vision.camera_model import CameraModel
+from tasks.vision.detection import detect_grid
+from tasks.vision.detection.framework import cut_by_border
+from tasks.vision.detection.partial_view import MIN_FRACTION
+from tasks.vision.poses import RAD_TO_ARCSEC, estimate_pose
 
 DIST = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
 CAM1 = CameraModel(3072, 2048, 0.0024, 16.0, 1541.3, 1019.8, DIST, focus_distance_mm=300.0, f_number=8.0)

@@ -1,4 +1,4 @@
-"""Tests of plate pose estimation and its covariance (tasks/poses.py).
+"""Tests of plate pose estimation and its covariance (tasks/vision/poses.py).
 
 Pose level: true fixture poses from the default campaign plan, true intrinsics, true projected
 dot centres + seeded Gaussian noise σ = 0.03 px. The covariance must be *calibrated*: over
@@ -15,11 +15,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks import se3
-from tasks.campaign_plan import CampaignPlan, plan_campaign
-from tasks.kinematics import pose_error
-from tasks.machine import load_machine
-from tasks.poses import (
+from tasks.core import se3
+from tasks.machine.description import load_machine
+from tasks.machine.kinematics import pose_error
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.simulation.render import ImagingConditions, render_plate_image, true_dot_centres
+from tasks.vision.poses import (
     COV_COLUMNS,
     POSE_COLUMNS,
     RAD_TO_ARCSEC,
@@ -31,7 +32,6 @@ from tasks.poses import (
     pose_jacobian,
     poses_from_table,
 )
-from tasks.render import ImagingConditions, render_plate_image, true_dot_centres
 
 SIGMA = 0.03
 N_DRAWS = 200
@@ -199,7 +199,7 @@ def test_end_to_end_rendered_images(setup):
     10 µm and 15″ of the truth per component (measured ≤ 3.2 µm, ≤ 8″). The detector's small
     systematic errors are correlated over the dots, which the white-noise covariance does not
     model: for camera 2 the error reaches several reported σ (see docs/camera-calibration.md)."""
-    from tasks.detection import detect_grid
+    from tasks.vision.detection import detect_grid
 
     machine = setup[0]
     for name in ("camera1", "camera2"):

@@ -1,4 +1,4 @@
-"""Tests of the plate image renderer (tasks/render.py).
+"""Tests of the plate image renderer (tasks/simulation/render.py).
 
 Geometry as on the machine: 16 mm lens, 2.4 µm pixels (fx = fy ≈ 6666.7 px), 3072×2048;
 camera 1 sees plate "a" (2.5 mm dots, 5 mm pitch) from ~280 mm, camera 2 sees plate "b"
@@ -14,9 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from tasks.camera_model import CameraModel, distort_normalised, project_points
-from tasks.plate import DotPlate, facing_camera_pose
-from tasks.render import (
+from tasks.machine.plate import DotPlate, facing_camera_pose
+from tasks.simulation.render import (
     ExtraDistortion,
     ImagingConditions,
     UndistortionGrid,
@@ -30,6 +29,7 @@ from tasks.render import (
     undistort_normalised,
     undistort_pixels,
 )
+from tasks.vision.camera_model import CameraModel, distort_normalised, project_points
 
 DIST = (-0.08, 0.12, 1e-4, -2e-4, -0.05)
 CAM1 = CameraModel(3072, 2048, 0.0024, 16.0, 1535.7, 1023.2, DIST, focus_distance_mm=280.0, f_number=8.0)
@@ -376,7 +376,7 @@ def test_edge_pixels_are_the_pixel_integral_of_the_blurred_edge():
     of Φ((t + n·δ)/σ): any normal direction (axis-aligned included), σ = 0 (area coverage)."""
     from scipy.special import ndtr
 
-    from tasks.render import _blurred_edge_coverage
+    from tasks.simulation.render import _blurred_edge_coverage
 
     rng = np.random.default_rng(3)
     g = (np.arange(200) + 0.5) / 200 - 0.5
@@ -395,7 +395,7 @@ def test_edge_pixels_are_the_pixel_integral_of_the_blurred_edge():
 def test_in_focus_blur_is_aberration_and_the_aperture_diffraction():
     """0.42 λ N_w at the working f-number: 0.81 px for f/8 focused at 300 mm (2.4 µm pixels),
     0.96 px at 80 mm; added in quadrature to the aberration σ; a quarter on the binned sensor."""
-    from tasks.render import diffraction_sigma_px
+    from tasks.simulation.render import diffraction_sigma_px
 
     assert diffraction_sigma_px(CAM1, 0.55) == pytest.approx(0.42 * 0.55e-3 * 8.0 * 280 / 264 / 0.0024)
     cam300 = dataclasses.replace(CAM1, focus_distance_mm=300.0)

@@ -13,10 +13,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.detector_comparison import SUMMARY_COLUMNS
 from tasks.report import ReportData, before_after_table, write_report
 from tasks.report.render import NOT_AVAILABLE
 from tasks.report.tables import fmt_pm
+from tasks.vision.detector_comparison import SUMMARY_COLUMNS
 
 AXES = {"X": "mm", "Y": "mm", "Z": "mm", "A": "deg", "C": "deg"}
 COMPONENTS = ("dx_um", "dy_um", "dz_um", "ex_arcsec", "ey_arcsec", "ez_arcsec")

@@ -13,10 +13,10 @@ from typer.testing import CliRunner
 
 import fivecal
 from fivecal.cli import app
-from tasks import reproduce as R
-from tasks.lake_schema import PARTITION, TABLES
+from flows import reproduce as R
+from tasks.lake.schema import PARTITION, TABLES
+from tasks.lake.store import read_table
 from tasks.report.data import REPORT_TABLES, code_fingerprint
-from tasks.results_lake import read_table
 
 runner = CliRunner()
 
@@ -218,7 +218,7 @@ def test_tampered_numbers_are_printed_with_table_key_column_and_values(calibrate
 
 
 def self_calibrations(calibrated, calibrate, threads, n=4):
-    from tasks.ingest import load_campaign_metadata
+    from tasks.campaign.ingest import load_campaign_metadata
 
     campaign_id = calibrated.summary["campaign_id"]
     dots = read_table("dots", calibrated.results, campaign_id).drop(columns=PARTITION)
@@ -232,7 +232,7 @@ def test_the_calibration_step_is_bitwise_repeatable_with_two_opencv_threads(cali
     """The measure flow's calibration task pins OpenCV and BLAS to one thread: same numbers at any setting.
     (OpenCV's multi-threaded calibrateCameraExtended differs by ~1e-6 px from call to call, which the
     identification amplifies to 1e-4 relative: tasks/vision_steps.one_numeric_thread.)"""
-    from tasks.vision_steps import calibrate
+    from tasks.steps.vision import calibrate
 
     runs = self_calibrations(calibrated_campaign, calibrate.fn, 2, n=6)
     for t in runs[1:]:

@@ -8,21 +8,7 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from tasks import se3
-from tasks.camera_model import project_points
-from tasks.campaign_plan import CampaignPlan, plan_campaign
-from tasks.effects import parse_effect
-from tasks.error_model import ARCSEC
-from tasks.identification.measurements import Measurements, planned_measurements
-from tasks.identification.pige_identification import (
-    IDENTIFICATION_CAMERA,
-    IDENTIFICATION_STAGES,
-    identify_pige,
-    pose_residuals,
-    synthetic_measurements,
-)
-from tasks.lake_schema import TABLES, partition_problems
-from tasks.model_ladder import (
+from tasks.analysis.model_ladder import (
     LADDER_COLUMNS,
     add_step,
     append_step,
@@ -32,9 +18,7 @@ from tasks.model_ladder import (
     ladder_step,
     read_ladder,
 )
-from tasks.report import ReportData, write_report
-from tasks.report.residual_figures import residual_report
-from tasks.residuals import (
+from tasks.analysis.residuals import (
     DOT_RESIDUAL_COLUMNS,
     POSE_RESIDUAL_COLUMNS,
     binned_mean,
@@ -43,7 +27,23 @@ from tasks.residuals import (
     pose_residual_table,
     trend_summary,
 )
-from tasks.results_lake import partition_path, write_partition
+from tasks.core import se3
+from tasks.identification.measurements import Measurements, planned_measurements
+from tasks.identification.pige_identification import (
+    IDENTIFICATION_CAMERA,
+    IDENTIFICATION_STAGES,
+    identify_pige,
+    pose_residuals,
+    synthetic_measurements,
+)
+from tasks.lake.schema import TABLES, partition_problems
+from tasks.lake.store import partition_path, write_partition
+from tasks.machine.effects import parse_effect
+from tasks.machine.error_model import ARCSEC
+from tasks.report import ReportData, write_report
+from tasks.report.residual_figures import residual_report
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.vision.camera_model import project_points
 
 COV = np.diag([0.2e-3**2] * 2 + [4e-3**2] + [(70 * ARCSEC) ** 2] * 2 + [(3 * ARCSEC) ** 2])
 RATE_UM_PER_HOUR = 20.0
@@ -337,7 +337,7 @@ def test_report_pages_render_to_png_and_into_the_report(machine, errors, frame, 
 
 def _noise_table(rng, n: int = 400) -> pd.DataFrame:
     """A residuals-like table of one camera: uniform variables, Gaussian components (µm, arcsec)."""
-    from tasks.residuals import CAMERA_COMPONENTS
+    from tasks.analysis.residuals import CAMERA_COMPONENTS
 
     t = pd.DataFrame({"camera": "camera1", "X_mm": rng.uniform(-5, 5, n), "time_s": np.arange(n) * 3.0,
                       "approach_X": rng.choice([-1, 1], n)})
@@ -349,7 +349,7 @@ def _noise_table(rng, n: int = 400) -> pd.DataFrame:
 def test_trend_tests_flag_the_nominal_share_of_pure_noise_and_ignore_a_constant_offset():
     """Pure noise: about 5 % of the panels are flagged at the 5 % level (600 panels: 2.5–8 %). A constant
     offset of a component is no trend: flagged no more often. A linear trend of 4 µm over X is."""
-    from tasks.residual_trends import trend_tests
+    from tasks.analysis.residual_trends import trend_tests
 
     rng = np.random.default_rng(4)
     tables = [_noise_table(rng) for _ in range(34)]
@@ -368,8 +368,8 @@ def test_trend_tests_flag_the_nominal_share_of_pure_noise_and_ignore_a_constant_
 def test_a_trend_the_models_own_uncertainty_explains_is_not_flagged():
     """A wave over X that the identified model's uncertainty could make (a shared deviation of that shape
     at its size) is within the test's allowance; without that allowance it is flagged."""
-    from tasks.residual_trends import trend_tests
-    from tasks.residuals import CAMERA_COMPONENTS
+    from tasks.analysis.residual_trends import trend_tests
+    from tasks.analysis.residuals import CAMERA_COMPONENTS
 
     rng = np.random.default_rng(5)
     t = _noise_table(rng, 600)

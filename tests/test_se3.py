@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from tasks import se3
+from tasks.core import se3
 
 finite = st.floats(-1e3, 1e3, allow_nan=False)
 angles = st.floats(-3.1, 3.1, allow_nan=False)

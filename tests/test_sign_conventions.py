@@ -1,12 +1,12 @@
-"""The PIGEs' signs, pinned through the forward kinematics of the prototype (tasks/error_model.py's
+"""The PIGEs' signs, pinned through the forward kinematics of the prototype (tasks/machine/error_model.py's
 table, docs/virtual-machine.md): each case moves one point by a figure worked out by hand."""
 
 import numpy as np
 import pytest
 
-from tasks.error_model import ARCSEC, UM, ErrorModel
-from tasks.kinematics import forward
-from tasks.machine import load_machine
+from tasks.machine.description import load_machine
+from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.kinematics import forward
 
 
 @pytest.fixture(scope="module")

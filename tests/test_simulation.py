@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from tasks.campaign_plan import CampaignPlan, five_axis_poses, plan_campaign
-from tasks.detection.framework import cut_by_border
-from tasks.detection.partial_view import MIN_FRACTION
-from tasks.effects import parse_effect
-from tasks.prototype_errors import load_prototype_errors
-from tasks.simulate import encode_png, manifest_from_plan, render_image, simulate_truth
-from tasks.truth_stats import SEED_BEFORE, summarise, tip_errors
+from tasks.machine.effects import parse_effect
+from tasks.simulation.campaign_plan import CampaignPlan, five_axis_poses, plan_campaign
+from tasks.simulation.prototype_errors import load_prototype_errors
+from tasks.simulation.simulate import encode_png, manifest_from_plan, render_image, simulate_truth
+from tasks.simulation.truth_stats import SEED_BEFORE, summarise, tip_errors
+from tasks.vision.detection.framework import cut_by_border
+from tasks.vision.detection.partial_view import MIN_FRACTION
 
 
 def test_prototype_reproduces_the_seeds_before_compensation_errors(machine):
@@ -44,7 +44,7 @@ def test_default_plan_has_the_seeds_stage_sizes(default_plan):
 
 
 def test_sweeps_step_as_planned_and_alternate_direction(default_plan):
-    """X/Y/A as the seed; Z in 0.2 mm steps and C over its whole stroke, ends included (see tasks.campaign_plan)."""
+    """X/Y/A as the seed; Z in 0.2 mm steps and C over its whole stroke, ends included (campaign_plan)."""
     plan, _ = default_plan
     for axis, step in {"X": 1.0, "Y": 1.0, "Z": 0.2, "A": 1.0, "C": 7.2}.items():
         s = plan[(plan.stage == "pdge") & (plan.group == axis)]
@@ -58,7 +58,7 @@ def test_sweeps_step_as_planned_and_alternate_direction(default_plan):
 def test_every_planned_view_keeps_enough_of_its_plate_in_the_image(machine, default_plan):
     """Calibration views and camera 2's A sweep see their whole plate; plate a (66 mm) leaves camera 1's
     field only in the Y sweep's ends and where C turns its corners out, and every view keeps at least
-    the half of its dots that detection needs wholly inside the image (tasks.detection.partial_view)."""
+    the half of its dots that detection needs wholly inside the image (tasks.vision.detection.partial_view)."""
     plan, fixture = default_plan
     errors = load_prototype_errors()
     truth = simulate_truth(machine, errors, plan, fixture, size="full")
@@ -125,7 +125,7 @@ def test_manifest_carries_commands_time_and_temperature(machine):
 
 
 def test_a_verification_capture_plan_takes_its_repeats_as_passes_over_the_poses():
-    from tasks.verification_capture import capture_plan
+    from tasks.simulation.verification_capture import capture_plan
 
     commands = np.arange(10.0).reshape(2, 5)
     plan = capture_plan(["a", "b"], commands, "camera1", start_s=100.0, seconds_per_image=3.0, repeats=3)

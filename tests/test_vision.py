@@ -1,4 +1,4 @@
-"""Which plate each image shows (tasks/vision.py, Machine.plate_seen), checked on the tiny campaign.
+"""Which plate each image shows (tasks/vision/pipeline.py, Machine.plate_seen), checked on the tiny campaign.
 
 Calibration views show the camera's calibration target, every other image the plate the camera
 measures; a campaign without ``calibration_targets`` (written before they existed) calibrates on
@@ -13,11 +13,10 @@ import json
 import numpy as np
 import pandas as pd
 
-from tasks.camera_model import CameraModel
-from tasks.detection.perspective import project
-from tasks.machine import load_machine
-from tasks.poses import poses_from_table
-from tasks.vision import (
+from tasks.machine.description import load_machine
+from tasks.vision.camera_model import CameraModel
+from tasks.vision.detection.perspective import project
+from tasks.vision.pipeline import (
     PRIOR_COLUMNS,
     campaign_plates,
     detect_images,
@@ -26,6 +25,7 @@ from tasks.vision import (
     plates_by_camera,
     with_detection_inputs,
 )
+from tasks.vision.poses import poses_from_table
 
 
 def _campaign(folder) -> tuple[dict, pd.DataFrame]:
@@ -90,7 +90,7 @@ def test_calibration_views_are_detected_and_posed_on_their_target(tiny_campaign)
 
 
 def test_the_nominal_prediction_puts_every_dot_within_a_tenth_of_the_pitch(tiny_campaign):
-    """The detection prior (tasks.vision.expected_homographies): the nominal kinematics and the
+    """The detection prior (tasks.vision.pipeline.expected_homographies): the nominal kinematics and the
     nominal camera at the commanded axes put each machine view's dots near the true ones, well
     inside the 0.35 pitch that partial-view labelling needs (measured: at most 0.048 pitch; the
     machine's errors and the lens distortion, which the nominal camera leaves out); calibration

@@ -13,7 +13,7 @@ poses with pose noise), and how far the true compensated tip sits from the clean
 seed and validation poses, mean of the per-pose distance). Prints one row per (seed, hidden effect, model).
 
     python docs/examples/context_at_tip_poses.py 10 67 161
-    python docs/examples/context_at_tip_poses.py --plan small 10 67     # another of tasks.campaign_plan.PLANS
+    python docs/examples/context_at_tip_poses.py --plan small 10 67  # another plan of campaign_plan.PLANS
 """
 
 import sys
@@ -22,20 +22,20 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 
-from tasks import se3
-from tasks.campaign_plan import PLANS, plan_campaign
-from tasks.capture_request import CAPTURE_GAP_IMAGES, planned_capture_context
-from tasks.compensation import compensate, desired_tip_poses
-from tasks.diagnosis import diagnose
-from tasks.effects import EFFECTS, load_effect_modules, parse_effect, private_families
-from tasks.error_model import ARCSEC, ErrorModel
+from tasks.analysis.compensation import compensate, desired_tip_poses
+from tasks.analysis.diagnosis import diagnose
+from tasks.analysis.verification import tip_errors_with_tool_direction, vbm_errors
+from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES, planned_capture_context
+from tasks.core import se3
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pige_identification import calibrate, synthetic_measurements
-from tasks.kinematics import forward
-from tasks.machine import load_machine
-from tasks.prototype_errors import load_prototype_errors
-from tasks.verification import tip_errors_with_tool_direction, vbm_errors
-from tasks.verification_capture import capture_plan
+from tasks.machine.description import load_machine
+from tasks.machine.effects import EFFECTS, load_effect_modules, parse_effect, private_families
+from tasks.machine.error_model import ARCSEC, ErrorModel
+from tasks.machine.kinematics import forward
+from tasks.simulation.campaign_plan import PLANS, plan_campaign
+from tasks.simulation.prototype_errors import load_prototype_errors
+from tasks.simulation.verification_capture import capture_plan
 
 COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 * ARCSEC) ** 2] * 2 + [(1.15 * ARCSEC) ** 2])
 MODULE = "docs/examples/cross_backlash.py"

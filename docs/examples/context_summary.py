@@ -13,8 +13,8 @@ import sys
 
 import pandas as pd
 
-from tasks.model_ladder import read_ladder
-from tasks.results_lake import read_table
+from tasks.analysis.model_ladder import read_ladder
+from tasks.lake.store import read_table
 
 
 def _truth(root: str, cid: str, phase: str) -> pd.DataFrame:

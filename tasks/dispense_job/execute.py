@@ -22,8 +22,8 @@ import pandas as pd
 from tasks.dispense_job.boards import TraySpec, pixels_to_tray, tray_to_pixels
 from tasks.dispense_job.program import COMMAND_COLUMNS
 from tasks.dispensing.tip import landing_points
-from tasks.error_model import ErrorModel
-from tasks.machine import Machine
+from tasks.machine.description import Machine
+from tasks.machine.error_model import ErrorModel
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@
   the tray's surface at the camera pose that the identified machine model gives for the imaging
   command (the workpiece frame); the needle is then asked to stand ``standoff_mm`` above that point with
   the tool vertical (nominal inverse kinematics gives the desired tip pose), and the command is
-  compensated by inverse kinematics of the identified model (tasks.compensation), so that the glue
+  compensated by inverse kinematics of the identified model (tasks.analysis.compensation), so that the glue
   lands where the image says. Without a model (``model=None``) the nominal machine is used throughout:
   the uncompensated commands.
 
@@ -23,13 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.camera_model import CameraModel
-from tasks.compensation import compensate
+from tasks.analysis.compensation import compensate
 from tasks.dispensing.measure import pixels_to_surface
 from tasks.dispensing.tip import landing_points
 from tasks.dispensing.workpiece import Workpiece, dispensing_commands
-from tasks.error_model import ErrorModel
-from tasks.machine import Machine
+from tasks.machine.description import Machine
+from tasks.machine.error_model import ErrorModel
+from tasks.vision.camera_model import CameraModel
 
 # the paper's Table 2: pixel coordinates (u, v) and the needle's dispensing position (X, Y) in mm
 PAPER_TABLE2_PX = np.array([[706.8, 433.9], [1874.5, 548.2], [1095.4, 1120.1], [2098.5, 2056.5], [526.3, 1599.5]])

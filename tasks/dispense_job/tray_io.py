@@ -27,13 +27,13 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from tasks.campaign_io import atomic_write_text
+from tasks.campaign.folder import atomic_write_text
 from tasks.dispense_job.boards import TraySpec, apply_light, board_truth, paint_tray, place_boards
 from tasks.dispense_job.camera_view import camera_image, hand_eye_marks, project_to_camera
 from tasks.dispense_job.pixel_map import jog_over
 from tasks.dispensing.workpiece import imaging_commands
-from tasks.machine import load_machine
-from tasks.simulate import read_truth
+from tasks.machine.description import load_machine
+from tasks.simulation.simulate import read_truth
 
 SURFACE_Z_MM = 19.8  # the dispensing test's workpiece height: the tip meets it near the zero Z command
 STANDOFF_MM = 0.2

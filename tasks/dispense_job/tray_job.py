@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from tasks.camera_model import CameraModel
 from tasks.dispense_job.bead_inspection import axis_offsets, find_beads, measure_beads, pair_beads
 from tasks.dispense_job.boards import apply_light, paint_tray, place_boards
 from tasks.dispense_job.camera_view import camera_image
@@ -37,8 +36,9 @@ from tasks.dispense_job.pixel_map import (
 from tasks.dispense_job.program import Motion, program_rows, program_time_s
 from tasks.dispense_job.tray_io import STANDOFF_MM, Tray, camera_spec, tray_spec
 from tasks.dispensing.tip import landing_points
-from tasks.error_model import ErrorModel
-from tasks.machine import Machine, load_machine
+from tasks.machine.description import Machine, load_machine
+from tasks.machine.error_model import ErrorModel
+from tasks.vision.camera_model import CameraModel
 
 PHASES = ("compensated", "nominal", "planar")
 TOUR_METHODS = ("optimal", "annealing", "nearest", "return_to_origin")

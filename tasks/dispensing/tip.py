@@ -12,7 +12,7 @@ the surface not at all.
 
 The fit: measured dot − ring offsets of qualified dots (any phases; each with its commands) against
 those the identified model predicts with a constant tool-frame offset t added to it (the
-``tool_offset`` effect, tasks.effects); Gauss–Newton on t (µm), covariance σ² (JᵀJ)⁻¹ with σ² from
+``tool_offset`` effect, tasks.machine.effects); Gauss–Newton on t (µm), covariance σ² (JᵀJ)⁻¹ with σ² from
 the residuals. The camera sees plates, never the tip: no other measurement fixes t.
 """
 
@@ -22,11 +22,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tasks.context import PoseContext
-from tasks.effects import ToolOffset
-from tasks.error_model import UM, ErrorModel
-from tasks.kinematics import forward
-from tasks.machine import Machine
+from tasks.machine.context import PoseContext
+from tasks.machine.description import Machine
+from tasks.machine.effects import ToolOffset
+from tasks.machine.error_model import UM, ErrorModel
+from tasks.machine.kinematics import forward
 
 MAX_CONDITION = 1e3  # beyond it the tool-axis component is not seen (mean |sin A| below ~1e-3)
 TIP_FIT_STEP_UM = 1.0  # finite-difference step of the Jacobian (the landing is linear in t to < 1e-6)

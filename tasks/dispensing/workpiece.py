@@ -17,7 +17,7 @@ centre (along the surface normal), tool direction fixed by (A, C); the drop that
 the surface at the point nearest the opening (tasks.dispensing.tip). Imaging: camera 1 straight
 above the ring, A = C = 0, at its working distance from the ring's pad. Both are plain nominal
 inverse kinematics: the nominal commands; the compensated ones come from
-:func:`tasks.compensation.compensate` on the same desired tip poses.
+:func:`tasks.analysis.compensation.compensate` on the same desired tip poses.
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pandas as pd
 
-from tasks.inverse_kinematics import inverse
-from tasks.kinematics import forward
-from tasks.machine import AXIS_ORDER, Machine
+from tasks.machine.description import AXIS_ORDER, Machine
+from tasks.machine.inverse_kinematics import inverse
+from tasks.machine.kinematics import forward
 
 
 @dataclass(frozen=True)

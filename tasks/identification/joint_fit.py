@@ -30,7 +30,7 @@ poses and of the other cameras' sweeps,
 - G_j: a basis of the profile changes that keep the gauge of :mod:`.pdge_extraction` (zero at home,
   orthogonal to the axis' line-error signatures): what it excludes, the constants carry.
 - ν: the constant poses at the ends of a chain outside the fit (camera mount, plate mount: 12, as
-  in :func:`tasks.residuals.chain_constant_part`) and the line errors of the axis it sweeps (its
+  in :func:`tasks.analysis.residuals.chain_constant_part`) and the line errors of the axis it sweeps (its
   gauge as seen by that camera), fitted to that camera's rows only.
 - P_j: the smoothing spline's roughness penalty per component, λ_jc K_j / s²_jc with the λ that the
   sweep's GCV chose and s² the variance of a position's mean that the rows' own whitening implies
@@ -58,8 +58,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.linalg import cho_solve
 
-from tasks import se3
-from tasks.error_model import COMPONENT_SCALE, ErrorModel
+from tasks.core import se3
 from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import ParamSpec, apply_parameters
 from tasks.identification.pdge_extraction import (
@@ -77,7 +76,8 @@ from tasks.identification.pige_identification import (
     whitening,
 )
 from tasks.identification.smoothing import penalty_matrix
-from tasks.machine import AXIS_ORDER, Machine
+from tasks.machine.description import AXIS_ORDER, Machine
+from tasks.machine.error_model import COMPONENT_SCALE, ErrorModel
 
 GAUSS_NEWTON_STEPS = 3
 

@@ -13,9 +13,9 @@ from functools import cached_property
 import numpy as np
 import pandas as pd
 
-from tasks.context import PoseContext, approach_directions
-from tasks.machine import AXIS_ORDER, CALIBRATION_STAGE
-from tasks.poses import covariances_from_table, poses_from_table
+from tasks.machine.context import PoseContext, approach_directions
+from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE
+from tasks.vision.poses import covariances_from_table, poses_from_table
 
 COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # images-table names of AXIS_ORDER
 INFO_COLUMNS = ("image_id", "camera", "stage", "group", "repeat", "time_s", "temperature_c")
@@ -101,7 +101,7 @@ def assemble_measurements(images: pd.DataFrame, poses: pd.DataFrame) -> Measurem
 
 
 def planned_measurements(plan: pd.DataFrame, cov: np.ndarray) -> Measurements:
-    """Measurements shaped like a campaign plan (:func:`tasks.campaign_plan.plan_campaign`) with
+    """Measurements shaped like a campaign plan (:func:`tasks.simulation.campaign_plan.plan_campaign`) with
     identity poses: the frame for synthetic (simulated, pose-level) measurements, e.g.
     :func:`tasks.identification.pige_identification.synthetic_measurements`.
 

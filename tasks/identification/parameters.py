@@ -1,7 +1,7 @@
 """The constant parameters that the PIGE fit identifies, and how they enter the error model.
 
 Each parameter is one component of a constant error screw (internal units mm or rad):
-- ``pige``: the 11 PIGEs of Table 2 (:data:`tasks.error_model.PIGE_SCREWS`);
+- ``pige``: the 11 PIGEs of Table 2 (:data:`tasks.machine.error_model.PIGE_SCREWS`);
 - ``constant``: home values of a joint's error motion that no PIGE covers but that the referred
   PDGE profiles leave out (the zero offsets of C and A, the axial offset of C);
 - ``squareness``: the slope of a linear axis' straightness perpendicular to its motion (µm per
@@ -9,9 +9,9 @@ Each parameter is one component of a constant error screw (internal units mm or 
 - ``mount``: the hand–eye correction of a camera on its link (rotations and the depth along the
   optical axis). It absorbs what self-calibration leaves in the intrinsics: a principal-point error
   acts as a small camera rotation and a focal-length error as a depth offset;
-- ``effect``: an amplitude (or phase) of one of the model's effects (:mod:`tasks.effects`), in
+- ``effect``: an amplitude (or phase) of one of the model's effects (:mod:`tasks.machine.effects`), in
   that parameter's own unit; ``calibrate(..., base=ErrorModel(effects=[...]))`` fits them
-  (:mod:`tasks.diagnosis.effect_fit`).
+  (:mod:`tasks.identification.effect_fit`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tasks.error_model import ARCSEC, PIGE_NAMES, PIGE_SCREWS, UM, ErrorModel
+from tasks.machine.error_model import ARCSEC, PIGE_NAMES, PIGE_SCREWS, UM, ErrorModel
 
 
 @dataclass(frozen=True)

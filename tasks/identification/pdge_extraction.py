@@ -33,12 +33,12 @@ import numpy as np
 import pandas as pd
 from scipy.interpolate import CubicSpline
 
-from tasks import se3
-from tasks.error_model import COMPONENT_SCALE, ErrorModel
+from tasks.core import se3
 from tasks.identification.measurements import Measurements
 from tasks.identification.smoothing import smooth
-from tasks.kinematics import forward, ideal_joint_motion
-from tasks.machine import AXIS_ORDER, Machine
+from tasks.machine.description import AXIS_ORDER, Machine
+from tasks.machine.error_model import COMPONENT_SCALE, ErrorModel
+from tasks.machine.kinematics import forward, ideal_joint_motion
 
 COMPONENT_COLUMNS = ("dx_um", "dy_um", "dz_um", "ex_arcsec", "ey_arcsec", "ez_arcsec")
 
@@ -76,7 +76,7 @@ class TabulatedProfile:
 
 
 def error_motion_components(E: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`tasks.se3.error_motion`: (N, 4, 4) -> (N, 6) (δ mm, ε rad), eq. 8 order."""
+    """Inverse of :func:`tasks.core.se3.error_motion`: (N, 4, 4) -> (N, 6) (δ mm, ε rad), eq. 8 order."""
     R = E[:, :3, :3]
     ey = np.arcsin(np.clip(R[:, 0, 2], -1.0, 1.0))
     ex = np.arctan2(-R[:, 1, 2], R[:, 2, 2])

@@ -20,13 +20,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
-from tasks.error_model import ErrorModel
 from tasks.identification.levenberg_marquardt import MAX_UNCERTAINTY, FitResult, levenberg_marquardt
 from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import ParamSpec, apply_parameters, default_parameters
 from tasks.identification.pdge_extraction import PdgeResult, extract_pdges
-from tasks.kinematics import forward, pose_error
-from tasks.machine import Machine
+from tasks.machine.description import Machine
+from tasks.machine.error_model import ErrorModel
+from tasks.machine.kinematics import forward, pose_error
 
 COV_FLOOR = np.diag([1e-4**2] * 3 + [(np.pi / 648000) ** 2] * 3)  # (0.1 µm)², (1″)²
 # the constant parameters are fitted over camera 1's five-axis poses and its sweeps of X, Y, Z
@@ -44,10 +44,10 @@ def whitening(cov: np.ndarray) -> np.ndarray:
 def as_measured(machine: Machine, model: ErrorModel, camera: str, T_cam_plate: np.ndarray, meas: Measurements,
                 rows: np.ndarray) -> np.ndarray:
     """``T_cam_plate`` (n, 4, 4) of ``meas``' ``rows`` (bool mask) as ``camera`` would measure it: with the
-    imaging bias of the model's camera effects (focal drift, extra distortion; :mod:`tasks.diagnosis.imaging`)."""
+    imaging bias of the model's camera effects (focal drift, extra distortion; :mod:`tasks.identification.imaging`)."""
     if not model.effects:
         return T_cam_plate
-    from tasks.diagnosis.imaging import apparent_view
+    from tasks.identification.imaging import apparent_view
 
     idx = np.flatnonzero(rows)
     q = machine.commands_to_internal(meas.commands[idx])
@@ -96,7 +96,7 @@ def identify_pige(machine: Machine, base: ErrorModel, meas: Measurements,
 
     x0: starting values (internal units; default zeros). adjust: optional ``(model, x) -> model``
     applied after the parameters (the effect fit uses it to move the PDGE profiles with the
-    effects' parameters, :mod:`tasks.diagnosis.effect_fit`)."""
+    effects' parameters, :mod:`tasks.identification.effect_fit`)."""
     specs = specs or default_parameters()
     W = whitening(meas.cov)
 
@@ -139,7 +139,7 @@ class CalibrationResult:
     values). notes: warnings of the fit in words (e.g. an effect these poses cannot identify). joint: the
     profiles and constants come from the joint step (:mod:`tasks.identification.joint_fit`).
     alternation: for a joint result, the alternation's converged solution it started from (None: the
-    diagnosis computes it, :func:`tasks.diagnosis.linearisation.alternation_of`)."""
+    diagnosis computes it, :func:`tasks.analysis.diagnosis.linearisation.alternation_of`)."""
 
     pdge: PdgeResult
     pige: PigeFit
@@ -204,7 +204,7 @@ class CalibrationResult:
     def _is_effect_amplitude(self, spec: ParamSpec) -> bool:
         if spec.kind != "effect":
             return False
-        from tasks.diagnosis.effect_params import param
+        from tasks.identification.effect_params import param
 
         return param(type(self.model.effects[spec.component]), spec.param).amplitude
 
@@ -269,12 +269,12 @@ def calibrate(machine: Machine, measurements: Measurements, truth: ErrorModel | 
 
     base: a starting model whose effects (and anything else) are kept; its PDGE profiles are
     replaced by the extracted ones. When it holds effects, their amplitudes (and phases) are fitted
-    too, the PDGEs re-extracted with them (:func:`tasks.diagnosis.effect_fit.calibrate_with_effects`).
+    too, the PDGEs re-extracted with them (:func:`tasks.identification.effect_fit.calibrate_with_effects`).
     truth: the simulator's model, to express it in the same gauge.
     """
     base = base or ErrorModel()
     if base.effects:
-        from tasks.diagnosis.effect_fit import calibrate_with_effects
+        from tasks.identification.effect_fit import calibrate_with_effects
 
         return calibrate_with_effects(machine, measurements, base, truth, specs)
     from tasks.identification.joint_fit import joint_refine

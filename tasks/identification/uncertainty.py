@@ -9,7 +9,7 @@ The LM of eq. 22 reports σ²(JᵀJ)⁻¹: the spread of the constant parameters
 were the only noisy input and the PDGE profiles were exact. Two inputs it holds fixed are not:
 
 * **the camera self-calibration.** Every pose of a camera shares its intrinsics' error. Each
-  eigen-direction of the intrinsics covariance Σ_θ (:mod:`tasks.intrinsics_uncertainty`) is
+  eigen-direction of the intrinsics covariance Σ_θ (:mod:`tasks.vision.intrinsics_uncertainty`) is
   applied at one standard deviation to every pose of that camera, T ← T · exp(S_k dθ), and the
   whole calibration (PDGE extraction and constant fit, alternated) is re-run. The sum of the
   squared parameter changes is the camera contribution (the GUM law of propagation with
@@ -45,9 +45,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tasks import se3
-from tasks.diagnosis.imaging import imaging_corrected
-from tasks.error_model import ARCSEC, UM, ErrorModel
+from tasks.core import se3
+from tasks.identification.imaging import imaging_corrected
 from tasks.identification.levenberg_marquardt import right_singular
 from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import apply_parameters
@@ -60,8 +59,9 @@ from tasks.identification.pige_identification import (
     pose_residuals,
     whitening,
 )
-from tasks.kinematics import forward
-from tasks.machine import Machine
+from tasks.machine.description import Machine
+from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.kinematics import forward
 
 NOISE_DRAWS = 16
 """Bootstrap draws: the standard deviation from 16 draws is good to about ±18 % (1/√(2·15))."""
@@ -99,7 +99,7 @@ def _linearised_refit(machine: Machine, result: CalibrationResult, measurements:
                       rounds: int = LINEARISED_ROUNDS) -> Callable[..., tuple]:
     """(``measurements`` moved, reselect_smoothing) -> (parameter values (P,), model): the
     alternation of :func:`tasks.identification.pige_identification.alternate` (or of the fit with
-    added effects, :mod:`tasks.diagnosis.effect_fit`) from ``result``'s solution, each constant fit
+    added effects, :mod:`tasks.identification.effect_fit`) from ``result``'s solution, each constant fit
     replaced by a Gauss–Newton step with the fit's own Jacobian in its identifiable subspace (the
     perturbations are small: a linear response). Each round extracts the PDGEs from the sweep
     poses corrected for the model's imaging bias, as the fit does, with the PDGE smoothers'
@@ -173,7 +173,7 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
     """Camera and noise contributions to the uncertainty of ``result``'s parameters (module docstring).
 
     measurements: what ``result`` was calibrated from. sensitivities: (N, 6, 8) ∂δ/∂θ of its poses
-    (:func:`tasks.intrinsics_uncertainty.pose_sensitivities`). intrinsics_cov: {camera: (8, 8)};
+    (:func:`tasks.vision.intrinsics_uncertainty.pose_sensitivities`). intrinsics_cov: {camera: (8, 8)};
     a camera without one (or with a NaN one) contributes nothing; without both, the pose noise alone
     (poses without images, as in the pose-level tests). draws: bootstrap draws (0: none).
     Deterministic for a given seed. workers: re-fits run side by side in threads."""

@@ -23,8 +23,8 @@ import platform
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tasks import lake_schema
-from tasks.campaign_io import MANIFEST_FILE, METADATA_FILE, atomic_write_parquet, atomic_write_text
+from tasks.campaign.folder import MANIFEST_FILE, METADATA_FILE, atomic_write_parquet, atomic_write_text
+from tasks.lake import schema as lake_schema
 
 if TYPE_CHECKING:
     from tasks.report.render import ReportData
@@ -40,7 +40,7 @@ FORMAT_VERSION = 1
 
 def campaign_file_hashes(folder: str | Path | None) -> dict[str, str | None]:
     """{file name: sha256 hex, or None if unreadable} of campaign.json and manifest.csv in ``folder``."""
-    from tasks.ingest import file_sha256
+    from tasks.campaign.ingest import file_sha256
 
     out: dict[str, str | None] = {}
     for name in CAMPAIGN_FILES:

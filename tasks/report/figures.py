@@ -27,7 +27,7 @@ from tasks.report.tables import (
     column,
     translation_rotation,
 )
-from tasks.truth_stats import SEED_AFTER, SEED_BEFORE, SEED_PDGE_MEANS
+from tasks.simulation.truth_stats import SEED_AFTER, SEED_BEFORE, SEED_PDGE_MEANS
 
 DPI = 150
 COLOURS = ("C0", "C1", "C2")

@@ -31,7 +31,7 @@ import pandas as pd
 from tasks.report import figures as F
 from tasks.report import tables as T
 from tasks.report.data import write_report_data
-from tasks.truth_stats import SEED_AFTER, SEED_BEFORE
+from tasks.simulation.truth_stats import SEED_AFTER, SEED_BEFORE
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -164,8 +164,8 @@ def camera_section(data: ReportData) -> str:
 
 
 def detector_section(data: ReportData) -> str:
-    """Table 4 with ``tasks.detector_comparison.format_table4``."""
-    from tasks.detector_comparison import SUMMARY_COLUMNS, format_table4
+    """Table 4 with ``tasks.vision.detector_comparison.format_table4``."""
+    from tasks.vision.detector_comparison import SUMMARY_COLUMNS, format_table4
 
     head = "## Table 4 — Target detection with PnP\n\n"
     df = T.for_campaign(data.detector_comparison, data.campaign_id)
@@ -398,13 +398,13 @@ def write_report(out_dir: Path, data: ReportData) -> dict[str, Path]:
     (the numbers and parameters, for ``fivecal reproduce``: tasks/report/data.py).
 
     Atomic: the report is built in a sibling temporary folder, then swapped in by rename
-    (``tasks.results_lake``'s exchange), so ``out_dir`` is either absent/the old report or the
+    (``tasks.lake.store``'s exchange), so ``out_dir`` is either absent/the old report or the
     whole new one; a previous report there is replaced whole. Raises ValueError/TypeError for
     malformed required inputs (before anything is written) and FileExistsError when ``out_dir``
     is a file or a non-empty folder that is not a report.
     Returns {"markdown": report.md, "html": index.html, "figures": the figures folder}.
     """
-    from tasks.results_lake import _swap_in
+    from tasks.lake.store import _swap_in
 
     out_dir = Path(out_dir).absolute()
     check_inputs(data)

@@ -9,7 +9,7 @@ What each page shows (docs/residuals.md):
 
 - ``residual_trends_<camera>``: the pose residual (camera-frame components, µm and arcsec) against each
   variable that varies for the camera (axis commands, time, temperature, plate position in the image):
-  binned means with a simultaneous 95 % band (:func:`tasks.residuals.binned_mean`). A panel whose band
+  binned means with a simultaneous 95 % band (:func:`tasks.analysis.residuals.binned_mean`). A panel whose band
   leaves zero somewhere has a red title: structure, not noise.
 - ``residual_approach_<camera>``: the same against the approach direction of each axis (−1, 0, +1).
 - ``residual_field_<camera>``: the per-dot reprojection residual over the image, averaged on a grid
@@ -30,18 +30,18 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from tasks.camera_model import CameraModel
-from tasks.identification.measurements import COMMAND_COLUMNS
-from tasks.report.figures import _no_data, new_figure
-from tasks.report.tables import fmt, fmt_g, md_table
-from tasks.residual_trends import ALPHA, trend_tests
-from tasks.residuals import (
+from tasks.analysis.residual_trends import ALPHA, trend_tests
+from tasks.analysis.residuals import (
     CAMERA_COMPONENTS,
     CATEGORICAL_VARIABLES,
     TREND_VARIABLES,
     binned_mean,
     worst_poses,
 )
+from tasks.identification.measurements import COMMAND_COLUMNS
+from tasks.report.figures import _no_data, new_figure
+from tasks.report.tables import fmt, fmt_g, md_table
+from tasks.vision.camera_model import CameraModel
 
 # variable -> (scale applied to x for display, axis label)
 VARIABLE_LABEL = {"X_mm": (1.0, "X (mm)"), "Y_mm": (1.0, "Y (mm)"), "Z_mm": (1.0, "Z (mm)"), "A_deg": (1.0, "A (deg)"),
@@ -60,7 +60,7 @@ def _stem(text: str) -> str:
 
 def _cameras_outside_fit(residuals: pd.DataFrame) -> list[str]:
     """Cameras none of whose images enter the constant-parameter fit (their residuals are taken against
-    the model completed by their chain's constant poses: :func:`tasks.residuals.chain_constant_part`)."""
+    the model completed by their chain's constant poses: :func:`tasks.analysis.residuals.chain_constant_part`)."""
     fitted = residuals.groupby("camera")["used_in_fit"].any()
     return sorted(str(c) for c, f in fitted.items() if not f)
 
@@ -331,7 +331,7 @@ def residual_report(residuals: pd.DataFrame, dot_residuals: pd.DataFrame | None 
     residuals: the ``residuals`` table. dot_residuals: the ``dot_residuals`` table (vector fields; None
     skips them). ladder: the ``model_ladder`` table (None skips it). cameras: {camera: intrinsics} for the
     image size of the vector fields. trends: the ``residual_trends`` table (None: tested here without the
-    model's shared uncertainty, :func:`tasks.residual_trends.trend_tests`). accepted: the effects the
+    model's shared uncertainty, :func:`tasks.analysis.residual_trends.trend_tests`). accepted: the effects the
     diagnosis accepted, for the section's account of the flagged panels (:func:`trends_story`). The
     figures appear under the report's "Additional figures" with their stems as captions; the sections
     name them.

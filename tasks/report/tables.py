@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from tasks.truth_stats import SEED_AFTER, SEED_BEFORE, SEED_PDGE_MEANS
+from tasks.simulation.truth_stats import SEED_AFTER, SEED_BEFORE, SEED_PDGE_MEANS
 
 DASH = "–"
 UNIDENTIFIABLE = "unidentifiable"
@@ -128,7 +128,7 @@ def column(df: pd.DataFrame, name: str) -> pd.Series:
 
 def _stats(values: pd.Series) -> dict[str, float]:
     """n, mean, max, std (ddof = 1; 0 for a single value) of the finite values, as in
-    ``tasks.truth_stats.summarise``."""
+    ``tasks.simulation.truth_stats.summarise``."""
     v = values.to_numpy(dtype=float)
     v = v[np.isfinite(v)]
     if v.size == 0:
@@ -541,9 +541,9 @@ DISTORTION = ("k1", "k2", "p1", "p2", "k3")
 
 
 def format_table3(camera_calibration: pd.DataFrame) -> str:
-    """The seed's Table 3 (``tasks.camera_calibration.table3`` of the trial rows, the ``joint``
+    """The seed's Table 3 (``tasks.vision.camera_calibration.table3`` of the trial rows, the ``joint``
     rows left out): reprojection RMS (px) per trial and camera, then mean and std over ok trials."""
-    from tasks.camera_calibration import table3
+    from tasks.vision.camera_calibration import table3
 
     trials = camera_calibration[camera_calibration["trial"].astype(str) != "joint"]
     wide = table3(trials)

@@ -1,0 +1,1 @@
+"""The Parquet results lake: table schemas, atomic partition writes, SQL queries."""

@@ -1,0 +1,1 @@
+"""The virtual machine: true errors, campaign plans, rendered images with their truth, and statistics of that truth."""

@@ -1,0 +1,1 @@
+"""From images to plate poses: dot-grid detection, camera models and self-calibration, PnP with pose covariances."""

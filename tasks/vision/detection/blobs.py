@@ -1,0 +1,66 @@
+"""Dot candidates from region contours: the fallback when the Hough search finds no grid.
+
+The RRHT needs rim edges; a rim that a shadow edge, JPEG blocks or a busy background break into
+short pieces gives it few votes. A printed dot is also a region darker (or lighter) than its
+surround: the coarse image is thresholded against its local mean over windows a few dot sizes
+wide (one window per octave of dot size, so that a shadow or a light gradient does not move the
+threshold across a dot), and each outer contour whose area, convexity and ellipse fit fit a dot
+of d_min…d_max becomes a candidate ellipse. Units: px of the coarse image.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from tasks.vision.detection.rrht import CoarseCircles
+
+
+def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: float,
+                       offset_fraction: float = 0.08, min_convexity: float = 0.9,
+                       max_fill_error: float = 0.12) -> CoarseCircles:
+    """Ellipses (coarse px) of the dot-like regions of ``image`` (uint8, preprocessed).
+
+    offset_fraction: a pixel belongs to a region when it is darker (lighter) than its local mean
+    by this fraction of the image's 1–99 % grey range; min_convexity: region area over its convex
+    hull's; max_fill_error: |region area / fitted ellipse area − 1| allowed.
+    """
+    lo, hi = np.percentile(image[::4, ::4], (1, 99))
+    offset = offset_fraction * max(float(hi - lo), 1.0)
+    src = image if dark_dots else cv2.bitwise_not(image)
+    found = []
+    block = 2 * d_min
+    while block <= 4 * d_max:
+        k = int(block) | 1
+        mean = cv2.blur(src.astype(np.float32), (k, k), borderType=cv2.BORDER_REFLECT)
+        mask = (src.astype(np.float32) < mean - offset).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        for c in contours:
+            if len(c) < 6:
+                continue
+            area = cv2.contourArea(c)
+            if not (np.pi * (d_min / 2) ** 2 * 0.6 <= area <= np.pi * (d_max / 2) ** 2 * 1.4):
+                continue
+            hull = cv2.contourArea(cv2.convexHull(c))
+            if hull <= 0 or area / hull < min_convexity:
+                continue
+            (cu, cv_), (w, h), ang = cv2.fitEllipse(c)
+            a, b = max(w, h) / 2, min(w, h) / 2
+            if b <= 0 or a / b > 4.0 or abs(area / (np.pi * a * b) - 1.0) > max_fill_error:
+                continue
+            theta = np.radians(ang) + (np.pi / 2 if h > w else 0.0)  # angle of the major axis
+            found.append((cu, cv_, a, b, (theta + np.pi / 2) % np.pi - np.pi / 2, area))
+        block *= 2
+    if not found:
+        return CoarseCircles.empty()
+    f = np.array(found)
+    # one candidate per dot: windows of several sizes find the same region
+    order = np.argsort(-f[:, 5])
+    f = f[order]
+    keep = np.ones(len(f), bool)
+    for i in range(len(f)):
+        if keep[i]:
+            d = np.hypot(f[i + 1 :, 0] - f[i, 0], f[i + 1 :, 1] - f[i, 1])
+            keep[i + 1 :] &= d > 0.5 * f[i, 3]
+    f = f[keep]
+    return CoarseCircles(f[:, :2].copy(), f[:, 2:4].copy(), f[:, 4].copy(), f[:, 5].copy(), np.ones(len(f)))

@@ -1,0 +1,290 @@
+"""The RRHT-based dot-grid detection framework (seed paper §4.1, adapted to dot grids and photographs).
+
+    image ─ downsample ─ median + gamma ─ Canny ─ chain-code filter ─ RRHT circles (coarse)
+          ─ appearance test ─ grid ordering  (no grid: + region-contour candidates, order again)
+          ─ sub-pixel ellipses in circular ROIs at full size (RANSAC + LSQ, pixel edge fit)
+          ─ homography + perspective-bias correction (local homographies under lens distortion)
+          ─ GridDetection
+
+Without a scale hint the coarse search runs over bands of dot size until one yields the grid
+(:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
+1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 12 px up
+at half and 6–16 px at full resolution. Candidates must look like a filled dot on a clear ring of plate
+(:mod:`tasks.vision.detection.verify`); when the Hough circles give no grid, dark (light) regions
+against their local mean are added (:mod:`tasks.vision.detection.blobs`). A view without exactly one
+complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`): a wrong
+labelling is worse than none.
+
+SYNOPSIS
+
+    >>> from tasks.vision.detection.framework import detect_rrht
+    >>> det = detect_rrht(image, plate, px_per_mm_hint=60.0)   # doctest: +SKIP
+    >>> det.ok, det.centres.shape                                # (True, (49, 2))  # doctest: +SKIP
+
+Units: px of the input image unless a name says otherwise; frames as in :mod:`tasks.vision.detection.result`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tasks.machine.plate import DotPlate
+from tasks.vision.detection.blobs import contour_candidates
+from tasks.vision.detection.chaincode import filter_edges
+from tasks.vision.detection.edges import canny_edges
+from tasks.vision.detection.grid import order_grid
+from tasks.vision.detection.grid_order import GridOrder
+from tasks.vision.detection.partial_view import too_few_dots
+from tasks.vision.detection.perspective import correct_bias, correct_bias_local, fit_homography, project
+from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
+from tasks.vision.detection.result import GridDetection
+from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
+from tasks.vision.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
+from tasks.vision.detection.verify import dot_fill
+
+
+@dataclass
+class FrameworkParams:
+    coarse_target_diameter_px: float = 12.0  # dot diameter aimed at on the coarse image
+    coarse_width_px: int = 768  # without a scale hint: coarse image about this wide
+    median_ksize: int = 3
+    min_support: float = 0.5  # per-dot fraction of the rim that must give inlier points
+    contour_fallback: bool = True  # add region-contour candidates when the Hough circles give no grid
+    min_fill_inside: float = 0.9  # a candidate's disc must look like a dot … (tasks.vision.detection.verify)
+    min_fill_outside: float = 0.85  # … on a clear ring of plate
+    bias_iterations: int = 2
+    distorted_misfit_px: float = 0.15  # RMS misfit (px) of the plate homography, well above centre noise,
+    # beyond which lens distortion dominates and the bias is computed from local homographies
+    seed: int = 0
+    rrht: RRHTParams = field(default_factory=RRHTParams)
+    subpixel: SubpixelParams = field(default_factory=SubpixelParams)
+
+
+def cut_by_border(centres_px: np.ndarray, major_semi_axes_px: np.ndarray, gap_ratio: float,
+                  image_shape: tuple[int, int]) -> np.ndarray:
+    """(K,) bool: dots (centres (K, 2) px, major semi-axes (K,) px) whose rim rays
+    (:func:`tasks.vision.detection.subpixel.rim_reach_px`), plus 2 px, would leave an image of
+    ``image_shape`` (H, W): the border cuts what their rim fit needs."""
+    h, w = image_shape
+    reach = rim_reach_px(major_semi_axes_px, gap_ratio) + 2.0
+    u, v = centres_px[:, 0], centres_px[:, 1]
+    return (u < reach) | (u > w - 1 - reach) | (v < reach) | (v > h - 1 - reach)
+
+
+def search_scale(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float | None,
+                 target_d: float, coarse_width: int) -> tuple[int, float, float]:
+    """(downsampling factor, min and max dot diameter in full-size px) for the first coarse search.
+
+    With a hint the diameter is known to within perspective foreshortening and focus changes
+    (×0.55…1.5); without one, dots from 1/128 to 1/14 of the longer image side are searched.
+    """
+    big = max(shape)
+    if px_per_mm_hint is not None and px_per_mm_hint > 0:
+        d = px_per_mm_hint * plate.dot_diameter_mm
+        factor = int(np.clip(np.floor(d / target_d), 1, 8))
+        return factor, 0.55 * d, 1.5 * d
+    factor = max(1, round(big / coarse_width))
+    return factor, big / 128.0, big / 14.0
+
+
+LARGE_DOT_BAND = (28.0, 3.5)
+"""Second search without a scale hint: dots from 1/28 to 1/3.5 of the longer image side (a
+grid that fills a phone photograph or a webcam frame), on an image downsampled so that they
+are again 6 to 50 coarse px across; it overlaps the first band by a factor 2."""
+SMALL_DOT_PX = 6.0
+"""Last searches, on a large image whose first band starts above 8 px (a distant plate in a phone
+photograph): dots from 12 px to twice the first band's smallest at half resolution, then from
+6 to 16 px at full resolution."""
+
+
+def search_bands(shape: tuple[int, int], plate: DotPlate, px_per_mm_hint: float | None, target_d: float,
+                 coarse_width: int) -> list[tuple[int, float, float]]:
+    """The coarse searches to try in turn: (factor, d_min, d_max) px, see :func:`search_scale`.
+
+    Without a hint the first band covers dots of 1/128 to 1/14 of the longer side; when it finds
+    no grid, :data:`LARGE_DOT_BAND` is searched on a 4× coarser image, then (on images whose
+    first band starts above 8 px) the small dots of :data:`SMALL_DOT_PX`.
+    """
+    first = search_scale(shape, plate, px_per_mm_hint, target_d, coarse_width)
+    if px_per_mm_hint is not None and px_per_mm_hint > 0:
+        return [first]
+    big = max(shape)
+    lo, hi = LARGE_DOT_BAND
+    bands = [first, (max(1, round(big / (coarse_width / 4))), big / lo, big / hi)]
+    if first[1] > 8.0:  # small dots: at half resolution down to 12 px, then at full resolution
+        bands += [(2, 2 * SMALL_DOT_PX, 2.0 * first[1]), (1, SMALL_DOT_PX, 2.7 * SMALL_DOT_PX)]
+    return bands
+
+
+@dataclass
+class CoarseAttempt:
+    """One coarse search: circles on the coarse image, their ordering (None: too few circles)."""
+
+    factor: int
+    circles: CoarseCircles
+    order: GridOrder | None
+    reason: str
+
+    @property
+    def ok(self) -> bool:
+        return self.order is not None and self.order.ok
+
+    @property
+    def score(self) -> int:
+        """How far the search got: lattice size found (for choosing which failure to report)."""
+        if self.order is None:
+            return -1
+        return int(np.prod(self.order.lattice_shape))
+
+    def candidates_full(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centres (K, 2), diameters (K,)) of the circles found, full-size px."""
+        return coarse_to_full(self.circles.centres, self.factor), 2.0 * self.circles.axes[:, 0] * self.factor
+
+
+def coarse_search(image: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
+                  p: FrameworkParams, tm: dict, *, expected_rotation_deg: float | None, mirrored: bool,
+                  expected_centres_px: np.ndarray | None) -> CoarseAttempt:
+    """Downsample by ``factor``, find circles of d_min…d_max full-size px with the RRHT and order
+    them into the plate's grid (all on the coarse image); timings add up in ``tm``."""
+    t0 = time.perf_counter()
+    small = downsample(image, factor)
+    pre, _ = auto_gamma(small, p.median_ksize)
+    t1 = time.perf_counter()
+    tm["preprocess"] = tm.get("preprocess", 0.0) + t1 - t0
+    em = canny_edges(pre)
+    edges, _ = filter_edges(em.edges, d_min / factor, d_max / factor)
+    tm["edges"] = tm.get("edges", 0.0) + time.perf_counter() - t1
+    r_min, r_max = d_min / factor / 2, d_max / factor / 2
+    circles = CoarseCircles.empty()
+    if edges.any():
+        circles = rrht_circles(em, edges, plate.dark_dots, r_min, r_max, p.rrht, seed=p.seed, timings=tm)
+    prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
+
+    def verified(c: CoarseCircles) -> CoarseCircles:
+        fill_in, fill_out = dot_fill(pre, c.centres, c.axes, c.theta, plate.dark_dots)
+        return c.subset((fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside))
+
+    def ordered(c: CoarseCircles) -> CoarseAttempt:
+        if len(c) < 4:
+            return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
+                                                  "dot grid")
+        t3 = time.perf_counter()
+        order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=small.shape,
+                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
+        tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
+        return CoarseAttempt(factor, c, order, order.reason)
+
+    circles = verified(circles)
+    attempt = ordered(circles)
+    if attempt.ok or not p.contour_fallback:
+        return attempt
+    t4 = time.perf_counter()
+    blobs = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
+    merged = merge_candidates(circles, blobs)
+    tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t4
+    if len(merged) == len(circles):
+        return attempt
+    retry = ordered(merged)
+    return retry if retry.ok or retry.score >= attempt.score else attempt
+
+
+def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> CoarseCircles:
+    """``first`` and the circles of ``more`` that are not within half a minor axis of one of them."""
+    if len(first) == 0 or len(more) == 0:
+        return more if len(first) == 0 else first
+    d = np.linalg.norm(more.centres[:, None, :] - first.centres[None, :, :], axis=2)
+    new = (d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])).all(axis=1)
+    add = more.subset(new)
+    return CoarseCircles(np.concatenate([first.centres, add.centres]), np.concatenate([first.axes, add.axes]),
+                         np.concatenate([first.theta, add.theta]), np.concatenate([first.votes, add.votes]),
+                         np.concatenate([first.rim_ratio, add.rim_ratio]))
+
+
+def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
+                px_per_mm_hint: float | None = None, correct_perspective: bool = True,
+                mirrored: bool = False, expected_centres_px: np.ndarray | None = None,
+                params: FrameworkParams | None = None) -> GridDetection:
+    """Detect and order the plate's dots with the RRHT framework (see module docstring).
+
+    image: (H, W) uint8 grayscale. plate: the expected plate (rows, cols, pitch, diameter,
+    polarity). expected_rotation_deg: prior on the in-plane angle of the plate +X axis (ccw on
+    screen, deg) that resolves the grid's rotational symmetry. px_per_mm_hint: approximate scale
+    on the plate (px/mm); speeds up and hardens the search. correct_perspective: subtract the
+    perspective bias of circle centres. mirrored: the plate is seen from its back.
+    expected_centres_px: (rows*cols, 2) predicted dot positions (full-size px); with them a plate
+    partly out of the image is measured on the dots inside it (:mod:`tasks.vision.detection.partial_view`),
+    and a dot whose rim rays the image border would cut (:func:`cut_by_border`) is left out.
+    Without them the whole grid must be found and a dot at the border is fitted on the rays
+    inside the image (calibration views, where the target fills the field).
+    """
+    p = params or FrameworkParams()
+    t_start = time.perf_counter()
+    n = plate.rows * plate.cols
+    tm: dict[str, float] = {}
+
+    def fail(reason: str, **kw) -> GridDetection:
+        return GridDetection.failure(n, "rrht", reason, elapsed_s=time.perf_counter() - t_start,
+                                     timings_s=tm, **kw)
+
+    image = check_image(image)
+    attempts: list[CoarseAttempt] = []
+    for factor, d_min, d_max in search_bands(image.shape, plate, px_per_mm_hint, p.coarse_target_diameter_px,
+                                             p.coarse_width_px):
+        attempts.append(coarse_search(image, plate, factor, d_min, d_max, p, tm,
+                                      expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
+                                      expected_centres_px=expected_centres_px))
+        if attempts[-1].ok or expected_centres_px is not None:  # a prior fixes the scale: one band
+            break
+    attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.score)
+    circles, order, factor = attempt.circles, attempt.order, attempt.factor
+    cand_uv, cand_d = attempt.candidates_full()
+    debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}
+    if not attempt.ok:
+        return fail(attempt.reason, **debug)
+    rc = plate.row_col()
+    found = order.index >= 0
+    gap_ratio = plate.pitch_range_mm[0] / plate.dot_diameter_mm - 1.0
+    if expected_centres_px is not None:  # a view that may be partial leaves out the dots the border cuts
+        found[found] = ~cut_by_border(coarse_to_full(circles.centres[order.index[found]], factor),
+                                      circles.axes[order.index[found], 0] * factor, gap_ratio, image.shape)
+    too_few = too_few_dots(int(found.sum()), n)
+    if too_few:
+        return fail(too_few, **debug)
+    idx = order.index[found]
+    c0 = coarse_to_full(circles.centres[idx], factor)
+    fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
+                           gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
+    bad = ~fits.ok | (fits.support < p.min_support)
+    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(0.5 * fits.axes[:, 1], 2.0 * factor)
+    bad |= moved
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        r, c = rc[found][k]
+        return fail(f"rim fit failed for {int(bad.sum())} dot(s), first at row {r} col {c} "
+                    f"(support {fits.support[k]:.2f})", **debug)
+    t5 = time.perf_counter()
+    xy = plate.dot_centres_mm()[found, :2]
+    if correct_perspective:
+        centres, hom = correct_bias(fits.centres, xy, plate.dot_diameter_mm / 2, p.bias_iterations)
+        misfit = np.sqrt(np.mean(np.sum((project(hom, xy) - centres) ** 2, axis=1)))
+        if misfit > p.distorted_misfit_px:  # lens distortion: one homography per neighbourhood
+            centres = correct_bias_local(fits.centres, xy, plate.dot_diameter_mm / 2, rc[found], p.bias_iterations)
+    else:
+        centres, hom = fits.centres.copy(), fit_homography(xy, fits.centres)
+    tm["perspective"] = time.perf_counter() - t5
+
+    def per_dot(values: np.ndarray) -> np.ndarray:  # found dots' values → (rows*cols, ...), NaN for the rest
+        out = np.full((n, *values.shape[1:]), np.nan)
+        out[found] = values
+        return out
+
+    return GridDetection(
+        ok=True, reason="", detector="rrht", centres=per_dot(centres), residual_rms_px=per_dot(fits.residual_rms_px),
+        support_ratio=per_dot(fits.support), elapsed_s=time.perf_counter() - t_start,
+        ellipse_centres=per_dot(fits.centres), axes_px=per_dot(fits.axes), edge_sigma_px=per_dot(fits.edge_sigma_px),
+        rotation_deg=order.rotation_deg,
+        orientation_ambiguous=order.ambiguous, homography=hom, timings_s=tm, **debug,
+    )

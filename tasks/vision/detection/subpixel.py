@@ -1,0 +1,613 @@
+"""Sub-pixel ellipse fits of dot rims at full resolution, batched over all dots.
+
+Each dot is searched in a circular ROI around its coarse ellipse: grey-level profiles are
+sampled along rays from the dot centre (bilinear interpolation, one ``cv2.remap`` call for all
+dots and rays), and the rim is located on each ray from the grey levels, not from pixel-quantised
+contours:
+
+* pass 1 (robust): the maximum of the polarity-signed derivative along each ray, refined by a
+  parabola; a RANSAC ellipse over these points rejects rays hit by clutter, dust or a neighbour.
+  The width of the derivative peak gives the edge blur σ of each dot.
+* pass 2 (precise): a window of ±(``window_sigmas`` σ + pad) around the pass-1 rim on every ray;
+  an area (first-moment) locator gives a start, then a per-ray least-squares fit of a blurred
+  step I(t) = a + (b − a) Φ((t − t_e)/s) gives the rim t_e and the local blur s. For blurry rims
+  the rays sample a ``level``× area-averaged copy of the image (same information, fewer samples).
+* blur–curvature correction: blurring moves a curved rim inwards by s²/(2ρ) (ρ: radius of
+  curvature); s varies across a dot on a tilted, defocused plate, so the shift is removed per ray.
+* flat field: vignetting and uneven light multiply the image by a gain that changes across a dot.
+  Along a ray a gain slope γ moves the fitted rim by about γ·s² (0.01 px for a 7 px blur near the
+  edge of the field). One smooth gain field is fitted to the grey levels at the far ends of all
+  rays of the image, and every profile is divided by it before the step fits.
+
+A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
+the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
+themselves (:mod:`tasks.vision.detection.edge_fit`): the rays' interpolation locks sharp rims to the
+pixel grid. Units: px of the full-size image unless a name says ``level``; ray angles in
+rad from +u towards +v.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tasks.vision.detection.conics import (
+    ellipse_params,
+    ellipse_radius_along,
+    fit_conic_lsq,
+    is_ellipse,
+    ransac_ellipse,
+    sampson_distance,
+)
+from tasks.vision.detection.edge_fit import fit_dot_edges
+from tasks.vision.detection.stats import masked_median
+
+INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
+
+
+@dataclass
+class SubpixelParams:
+    pass1_rays: int = 32
+    pass1_samples: int = 28  # samples per pass-1 ray (spread over the search band)
+    ransac_hypotheses: int = 16
+    rays_per_px: float = 0.5  # pass-2 rays per px of rim length (at the sampling level)
+    min_rays: int = 48
+    max_rays: int = 128
+    window_sigmas: float = 2.5  # pass-2 window half-width = window_sigmas × σ + window_pad_px × level
+    window_sigmas_blurry: float = 4.0
+    window_pad_px: float = 1.5
+    max_level: int = 4  # largest area-averaging factor for blurry rims …
+    sigma_per_level: float = 1.25  # … level = ⌊median σ / sigma_per_level⌋
+    erf_iterations: int = 2
+    # inner_slope: a dot whose contrast changes by more than min_shading from its centre to its rim on
+    # one side is refitted with a sloped inside (step_fit, shading); off by default: on real photographs
+    # it did not agree better with a hand-fit-like rim truth (docs/detector-comparison.md)
+    inner_slope: bool = False
+    min_shading: float = 0.1
+    shared_blur_iterations: int = 1  # then (t_e, a, b) refits with σ from the per-dot blur model
+    max_refine: int = 3  # pass-2 repetitions at most (each re-centres the rays) …
+    refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this
+    blur_curvature_correction: bool = True
+    flat_field: bool = True  # divide the profiles by the image's gain field (see module docstring)
+    pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.vision.detection.edge_fit)
+
+
+@dataclass
+class EllipseFits:
+    """Full-resolution ellipse fits of K dots (px)."""
+
+    centres: np.ndarray  # (K, 2) ellipse centres
+    axes: np.ndarray  # (K, 2) semi-axes (major, minor)
+    theta: np.ndarray  # (K,) major-axis angle, rad
+    residual_rms_px: np.ndarray  # (K,) RMS distance of inlier rim points to the ellipse
+    support: np.ndarray  # (K,) fraction of pass-2 rays that gave an inlier rim point
+    edge_sigma_px: np.ndarray  # (K,) median edge blur σ from the step fits
+    ok: np.ndarray  # (K,) bool
+
+
+@dataclass
+class Crop:
+    """``level``× area-averaged copy of the image region that holds every ROI.
+
+    origin: (u0, v0) full-size px of the region's top-left pixel; full: (H, W) of the image.
+    A full-size point u maps to (u − u0 + 0.5) / level − 0.5 in the crop.
+    """
+
+    data: np.ndarray
+    origin: tuple[int, int]
+    full: tuple[int, int]
+    level: int = 1
+
+
+def crop_rois(image: np.ndarray, centres: np.ndarray, reach: float, level: int = 1) -> Crop:
+    """Crop covering every centre ± reach px, area-averaged by ``level`` (uint8, not copied at level 1).
+
+    Rays sample it with bilinear interpolation rounded to whole grey levels: a uniform ±0.5 DN
+    error (σ 0.29 DN) per sample, negligible beside sensor noise, and no float copy of the plate.
+    """
+    h, w = image.shape
+    u0 = int(max(0, np.floor(centres[:, 0].min() - reach - 2)))
+    v0 = int(max(0, np.floor(centres[:, 1].min() - reach - 2)))
+    u1 = int(min(w, np.ceil(centres[:, 0].max() + reach + 3)))
+    v1 = int(min(h, np.ceil(centres[:, 1].max() + reach + 3)))
+    if level > 1:  # whole blocks only, so that the level grid stays aligned with the origin
+        u1 = u0 + max(level, (u1 - u0) // level * level)
+        v1 = v0 + max(level, (v1 - v0) // level * level)
+        sub = image[v0:v1, u0:u1]
+        data = cv2.resize(sub, (sub.shape[1] // level, sub.shape[0] // level),
+                          interpolation=cv2.INTER_AREA)
+    else:
+        data = image[v0:v1, u0:u1]
+    return Crop(data, (u0, v0), (h, w), level)
+
+
+def sample_profiles(crop: Crop, centres: np.ndarray, angles: np.ndarray, t: np.ndarray):
+    """Grey levels along rays: centres (K, 2) px, angles (R,), t (K, R, T) px → (K, R, T) float32.
+
+    Also returns the (K, R, T) mask of samples inside the full image.
+    """
+    k, r, n = t.shape
+    lv = float(crop.level)
+    t = t.astype(np.float32, copy=False)
+    cs = np.cos(angles).astype(np.float32)[None, :, None]
+    sn = np.sin(angles).astype(np.float32)[None, :, None]
+    u0, v0 = crop.origin
+    mx = (centres[:, 0, None, None] - u0).astype(np.float32) + cs * t  # (K, R, T) crop px (full scale)
+    my = (centres[:, 1, None, None] - v0).astype(np.float32) + sn * t
+    h, w = crop.full
+    inside = (mx >= -u0) & (mx <= w - 1 - u0) & (my >= -v0) & (my <= h - 1 - v0)
+    if crop.level > 1:
+        mx = (mx + 0.5) / lv - 0.5
+        my = (my + 0.5) / lv - 0.5
+    mx = mx.reshape(k * r, n)
+    my = my.reshape(k * r, n)
+    out = np.empty((k * r, n), crop.data.dtype)
+    step = 30000  # cv2.remap map height must stay below SHRT_MAX
+    for i in range(0, k * r, step):
+        out[i : i + step] = cv2.remap(crop.data, mx[i : i + step], my[i : i + step], INTERP,
+                                      borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(k, r, n).astype(np.float32), inside
+
+
+def robust_ellipse_fit(x, y, w, origin, scale, iterations: int = 1):
+    """LSQ ellipses (K sets) with iterative rejection beyond 4 robust σ.
+
+    x, y, w: (K, N) px and validity; origin (K, 2), scale (K,) px for normalisation. Returns
+    (conic (K, 6) in normalised coordinates, inlier mask (K, N), distances (K, N) px).
+    """
+    xn = (x - origin[:, 0:1]) / scale[:, None]
+    yn = (y - origin[:, 1:2]) / scale[:, None]
+    wts = w.astype(float)
+    conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
+    for _ in range(iterations):
+        d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+        mad = masked_median(d, (wts > 0) & np.isfinite(d), default=1.0)
+        thr = np.maximum(4.0 * 1.4826 * mad, 0.05)
+        wts = w * (d < thr[:, None])
+        conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
+    d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+    return conic, wts > 0, d
+
+
+def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: float, step: np.ndarray):
+    """Pass-1 rim per ray: (t_peak (K, R), peak height (K, R), FWHM of the peak (K, R) px).
+
+    The polarity-signed central difference is maximised along each ray and refined by a parabola.
+    step: (K,) sample spacing px (samples where ``t`` was clipped repeat and are ignored).
+    """
+    k, r, _ = prof.shape
+    dt = t[..., 2:] - t[..., :-2]
+    d = (prof[..., 2:] - prof[..., :-2]) * sign
+    ok = (dt > 1e-6) & inside[..., 2:] & inside[..., :-2]
+    d = np.where(ok, d / np.maximum(dt, 1e-6), -np.inf)  # derivative at samples 1 … T−2
+    j = np.argmax(d, axis=2)
+    kk, rr = np.meshgrid(np.arange(k), np.arange(r), indexing="ij")
+    jc = np.clip(j, 1, d.shape[2] - 2)
+    d0, dm, dp = d[kk, rr, jc], d[kk, rr, jc - 1], d[kk, rr, jc + 1]
+    peak = d[kk, rr, j]
+    with np.errstate(all="ignore"):
+        den = dm - 2 * d0 + dp
+        off = np.where((den < 0) & np.isfinite(den), 0.5 * (dm - dp) / den, 0.0)
+    off = np.clip(off, -0.5, 0.5)
+    step = np.broadcast_to(step[:, None], (k, r))
+    tp = np.where(j == jc, t[kk, rr, jc + 1] + off * step, t[kk, rr, j + 1])
+    fwhm = ((d > 0.5 * peak[..., None]) & np.isfinite(d)).sum(axis=2) * step
+    return tp, peak, fwhm
+
+
+def _phi(z: np.ndarray) -> np.ndarray:
+    """Standard normal CDF, tanh approximation (|error| < 2e-4, odd about 0: no location bias)."""
+    return 0.5 + 0.5 * np.tanh(z * (np.float32(0.7978845608) + np.float32(0.0356774081) * z * z))
+
+
+def solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Solve many small symmetric positive-definite systems: m (n, n, N), v (n, N) → (n, N).
+
+    Gaussian elimination written over the batch axis (no pivoting needed for SPD matrices):
+    a few dozen vector operations instead of one LAPACK call per system.
+    """
+    n = m.shape[0]
+    a = m.copy()
+    b = v.copy()
+    for i in range(n):
+        piv = np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
+        for j in range(i + 1, n):
+            f = a[j, i] / piv
+            a[j, i:] -= f * a[i, i:]
+            b[j] -= f * b[i]
+    x = np.empty_like(b)
+    for i in range(n - 1, -1, -1):
+        acc = b[i].copy()
+        for j in range(i + 1, n):
+            acc -= a[i, j] * x[j]
+        x[i] = acc / np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
+    return x
+
+
+def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None,
+             slope: np.ndarray | None = None, free_slope: bool = False):
+    """Per-ray least-squares fit of a blurred step I(t) = a + (b − a) Φ((t − t_e) / s).
+
+    prof, t: (K, R, T) grey levels and their distances along each ray; t0, i_in, i_out: (K, R)
+    starting values; sigma0: (K,) starting blur (px). Gauss–Newton on (t_e, a, b, log s), or on
+    (t_e, a, b) with s = ``fixed_sigma`` (K, R), all rays at once (arrays laid out (T, K·R) so
+    that every sum over a profile is a fast leading-axis reduction). Unlike the area locator,
+    which weights every sample of the window equally, this weights samples by how much they tell
+    about the edge position, so the noise of the flat parts of the window hardly enters t_e.
+    slope: (K, R) a slope m of the dot's level towards the rim (grey levels / px), the model then
+    I(t) + m (t − t_e)(1 − Φ) (a dot darker on one side, :func:`odd_part`); free_slope: m is
+    fitted too (starting from ``slope`` or 0).
+    Returns (t_e (K, R), s (K, R) px, converged (K, R), a (K, R), b (K, R), m (K, R)): a and b
+    are the fitted grey levels inside (at the rim) and outside the rim, m the slope.
+    """
+    f32 = np.float32
+    shape = t0.shape
+    n_t = prof.shape[-1]
+    y = np.ascontiguousarray(prof.reshape(-1, n_t).T, dtype=f32)  # (T, N)
+    tt = np.ascontiguousarray(t.reshape(-1, n_t).T, dtype=f32)
+    te = t0.reshape(-1).astype(f32)
+    a = i_in.reshape(-1).astype(f32)
+    b = i_out.reshape(-1).astype(f32)
+    if fixed_sigma is None:
+        ls = np.broadcast_to(np.log(np.maximum(sigma0, 0.3))[:, None], shape).reshape(-1).astype(f32)
+    else:
+        ls = np.log(np.maximum(fixed_sigma, 0.3)).reshape(-1).astype(f32)
+    n_base = 4 if fixed_sigma is None else 3
+    npar = n_base + int(free_slope)
+    m = np.zeros_like(te) if slope is None else slope.reshape(-1).astype(f32)
+    for _ in range(iterations):
+        s = np.exp(ls)
+        inv_s = f32(1.0) / s
+        dt = tt - te
+        z = dt * inv_s
+        phi = _phi(z)
+        dens = np.exp(f32(-0.5) * z * z) * f32(0.3989422804014327)
+        c = b - a
+        r = y - (a + c * phi + m * dt * (f32(1.0) - phi))  # (T, N)
+        cd = c * dens - m * dt * dens
+        # Jacobian columns (T, N)
+        cols = [-cd * inv_s - m * (f32(1.0) - phi), f32(1.0) - phi, phi, -cd * z][:n_base]
+        if free_slope:
+            cols.append(dt * (f32(1.0) - phi))
+        jtj = np.empty((npar, npar, len(te)))
+        jtr = np.empty((npar, len(te)))
+        for i in range(npar):
+            jtr[i] = (cols[i] * r).sum(axis=0)
+            for j in range(i, npar):
+                jtj[i, j] = jtj[j, i] = (cols[i] * cols[j]).sum(axis=0)
+        jtj[range(npar), range(npar)] += 1e-9
+        step = solve_spd(jtj, jtr)
+        lim = np.maximum(1.0, s)  # at most one blur width (or 1 px) per step
+        step[0] = np.clip(step[0], -lim, lim)
+        step = np.nan_to_num(step).astype(f32)
+        te, a, b = te + step[0], a + step[1], b + step[2]
+        if fixed_sigma is None:
+            ls = ls + np.clip(step[3], -0.7, 0.7)
+        if free_slope:
+            m = m + step[npar - 1]
+    te = te.astype(float).reshape(shape)
+    s = np.exp(ls.astype(float)).reshape(shape)
+    good = np.isfinite(te) & np.isfinite(s) & (np.abs(te - t0) < 3.0 * np.maximum(sigma0[:, None], 1.0))
+    return (np.where(good, te, t0), np.where(good, s, np.nan), good, a.astype(float).reshape(shape),
+            b.astype(float).reshape(shape), m.astype(float).reshape(shape))
+
+
+def odd_slope(m: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
+    """(K, 2): per dot, (m_x, m_y) of the fit m ≈ m_x cos + m_y sin of the rays' inner slopes m
+    (K, R) over the ``ok`` rays (angles ``ang`` (R,)): the dot's shading gradient (grey levels /
+    px). Shading across a dot gives slopes odd in the ray angle; the blurred rim's curvature and
+    an ellipse's changing radius give even ones."""
+    ok = ok & np.isfinite(m)
+    c, sn = np.cos(ang)[None, :], np.sin(ang)[None, :]
+    w = ok.astype(float)
+    mw = np.where(ok, m, 0.0)
+    scc, sss, scs = (w * c * c).sum(1), (w * sn * sn).sum(1), (w * c * sn).sum(1)
+    bc, bs = (mw * c).sum(1), (mw * sn).sum(1)
+    det = scc * sss - scs ** 2
+    good = det > 1e-6 * np.maximum(scc * sss, 1e-12)
+    mx = np.where(good, (bc * sss - bs * scs) / np.where(good, det, 1.0), 0.0)
+    my = np.where(good, (bs * scc - bc * scs) / np.where(good, det, 1.0), 0.0)
+    return np.stack([mx, my], axis=1)
+
+
+def blur_model(s: np.ndarray, ok: np.ndarray, ang: np.ndarray) -> np.ndarray:
+    """Smooth per-dot blur: σ²(θ) = c0 + c1 cos θ + c2 sin θ fitted to per-ray σ (K, R) → σ² (K, R).
+
+    A plate tilted out of focus has a blur that changes linearly across each dot; single rays
+    measure σ noisily, the three-term model averages them.
+    """
+    basis = np.stack([np.ones_like(ang), np.cos(ang), np.sin(ang)], axis=1)  # (R, 3)
+    w = ok.astype(float)
+    s2 = np.where(ok, s, 0.0) ** 2
+    a = np.einsum("kr,ri,rj->kij", w, basis, basis) + 1e-9 * np.eye(3)
+    b = np.einsum("kr,ri,kr->ki", w, basis, s2)
+    coef = np.linalg.solve(a, b[..., None])[..., 0]  # (K, 3)
+    return np.clip(coef @ basis.T, 0.01, None)
+
+
+@dataclass
+class GainField:
+    """log g(u, v) up to a constant: a plane or quadratic in normalised image position.
+
+    coef: (5,) coefficients of u, v, u², uv, v² (the last three zero for a plane); origin (2,)
+    and scale px normalise the position. A zero field (no correction) has coef zeros(5).
+    """
+
+    coef: np.ndarray
+    origin: np.ndarray
+    scale: float
+
+    @classmethod
+    def flat(cls) -> GainField:
+        return cls(np.zeros(5), np.zeros(2), 1.0)
+
+    def gradient(self, uv: np.ndarray) -> np.ndarray:
+        """∇g/g (N, 2) 1/px at image points uv (N, 2) px."""
+        c = self.coef
+        x = (uv[:, 0] - self.origin[0]) / self.scale
+        y = (uv[:, 1] - self.origin[1]) / self.scale
+        gx = c[0] + 2 * c[2] * x + c[3] * y
+        gy = c[1] + c[3] * x + 2 * c[4] * y
+        return np.stack([gx, gy], axis=1) / self.scale
+
+
+def fit_gain_field(prof: np.ndarray, t: np.ndarray, ok: np.ndarray, cen: np.ndarray, ang: np.ndarray,
+                   n_end: int = 2) -> GainField:
+    """The image's smooth gain field (vignetting × illumination gradient) around the dots.
+
+    Vignetting and the illumination gradient multiply the dots and the plate alike and change
+    smoothly over the image. The last ``n_end`` samples at each end of every ray lie about
+    3.5–4 blur σ from the rim (window_sigmas + pad, unless the dot's size or the gap to its
+    neighbour clips the window), where the grey level is the dot's or the plate's own whatever
+    the blur. Their logarithm is fitted, over all dots at once, by one level per end (dot, plate)
+    plus a quadratic in image position (a plane with fewer than 9 dots). Per-dot planes were too
+    noisy (3 DN of sample noise gives ∼2e-5 /px per dot, against a vignetting gradient of
+    3e-5 /px), and levels nearer the rim mix in the blur, which changes across a tilted,
+    defocused dot. Weights ∝ grey level (shot noise on a logarithm); one refit drops samples
+    beyond 4 robust σ (dust, a neighbour's tail). prof, t: (K, R, T) grey levels and px along
+    the rays; ok: (K, R) rays to use; cen: (K, 2) ray origins px; ang: (R,) rad.
+    """
+    k = prof.shape[0]
+    cs, sn = np.cos(ang)[None, :, None], np.sin(ang)[None, :, None]
+    ends = (slice(0, n_end), slice(-n_end, None))
+    v = np.concatenate([prof[..., e] for e in ends], axis=2).astype(float)  # (K, R, 2n)
+    tt = np.concatenate([t[..., e] for e in ends], axis=2)
+    outer = np.zeros(v.shape, bool)
+    outer[..., n_end:] = True
+    use = np.broadcast_to(ok[..., None], v.shape) & (v > 0.5)
+    if k < 3 or use.sum() < 20:
+        return GainField.flat()
+    origin = cen.mean(axis=0)
+    scale = max(float(np.ptp(cen, axis=0).max()), 50.0)
+    xn = ((cen[:, 0, None, None] + tt * cs - origin[0]) / scale)[use]
+    yn = ((cen[:, 1, None, None] + tt * sn - origin[1]) / scale)[use]
+    on = outer[use]
+    cols = [~on, on, xn, yn] + ([xn * xn, xn * yn, yn * yn] if k >= 9 else [])
+    a = np.stack(cols, axis=1).astype(float)  # (N, P)
+    lv = np.log(v[use])
+    w = v[use]
+    keep = np.ones(len(lv), bool)
+    for _ in range(2):
+        wk = w * keep  # normal equations: (N, ≤7) with normalised columns, well conditioned
+        coef = np.linalg.solve(a.T @ (a * wk[:, None]) + 1e-12 * np.eye(a.shape[1]), a.T @ (wk * lv))
+        r = lv - a @ coef
+        keep = np.abs(r) < 4.0 * (1.4826 * np.median(np.abs(r[keep])) + 1e-12)
+    return GainField(np.pad(coef[2:], (0, 7 - len(coef))), origin, scale)
+
+
+def flatten_profiles(prof: np.ndarray, t: np.ndarray, cen: np.ndarray, ang: np.ndarray,
+                     gain: GainField) -> np.ndarray:
+    """Profiles (K, R, T) divided by the gain relative to each dot centre, 1 + ∇g/g·(p − c)."""
+    g = gain.gradient(cen)  # (K, 2) 1/px
+    rel = 1.0 + t * (g[:, 0, None, None] * np.cos(ang)[None, :, None]
+                     + g[:, 1, None, None] * np.sin(ang)[None, :, None])
+    return prof / np.clip(rel, 0.5, 2.0).astype(np.float32)
+
+
+def curvature_correction(s2: np.ndarray, ang: np.ndarray, axes: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Outward shift (K, R) px that moves blurred-rim points back onto the sharp rim.
+
+    Blurring a disk by a Gaussian of σ moves its 50 % contour inwards by σ²/(2ρ), ρ the local
+    radius of curvature. A uniform σ only shrinks the ellipse, but on a tilted, defocused plate σ
+    changes across a dot, and the uneven shift moves the centre. s2: (K, R) σ² per ray (from
+    :func:`blur_model`); ρ is the ellipse's curvature radius where ray θ meets it.
+    """
+    phi = ang[None, :] - theta[:, None]
+    ea, eb = axes[:, 0:1], axes[:, 1:2]
+    tpar = np.arctan2(ea * np.sin(phi), eb * np.cos(phi))  # parametric angle of the hit point
+    rho_c = (ea**2 * np.sin(tpar) ** 2 + eb**2 * np.cos(tpar) ** 2) ** 1.5 / (ea * eb)
+    return s2 / (2.0 * rho_c)
+
+
+def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
+    """Robust rim ellipses and blur σ per dot (see module docstring)."""
+    ang = np.arange(p.pass1_rays) * (2 * np.pi / p.pass1_rays)
+    rho0 = ellipse_radius_along(centres, axes, theta, ang)  # (K, R1)
+    band = np.maximum(np.maximum(4.0, 2.0 * coarse_factor), 0.35 * axes[:, 1])  # (K,) ± px
+    u = np.linspace(-1.0, 1.0, p.pass1_samples)
+    t = rho0[:, :, None] + u[None, None, :] * band[:, None, None]
+    t = np.clip(t, 0.25 * axes[:, 1, None, None], out_lim[:, None, None])
+    prof, inside = sample_profiles(crop, centres, ang, t)
+    tp, peak, fwhm = derivative_peaks(prof, t, inside, sign, 2.0 * band / (p.pass1_samples - 1))
+    good = np.isfinite(peak) & (peak > 0)
+    med_peak = masked_median(peak, good, default=np.inf)
+    valid = good & (peak > 0.3 * med_peak[:, None])
+    sigma = np.clip(masked_median(fwhm / 2.355, valid, default=1.0), 0.5, None)
+    x = centres[:, 0:1] + np.cos(ang)[None, :] * tp
+    y = centres[:, 1:2] + np.sin(ang)[None, :] * tp
+    scale = np.maximum(axes[:, 0], 1.0)
+    xn = (x - centres[:, 0:1]) / scale[:, None]
+    yn = (y - centres[:, 1:2]) / scale[:, None]
+    thr = np.maximum(1.0, 0.03 * axes[:, 0]) / scale
+    inl = ransac_ellipse(xn, yn, valid, thr, p.ransac_hypotheses, rng)
+    conic = fit_conic_lsq(xn, yn, inl.astype(float), sampson_iterations=1)
+    ok = is_ellipse(conic) & (inl.sum(axis=1) >= 10)
+    c1, ax1, th1 = ellipse_params(conic, centres, scale)
+    bad = ~ok | ~np.isfinite(c1).all(axis=1) | ~np.isfinite(ax1).all(axis=1)
+    c1[bad], ax1[bad], th1[bad] = centres[bad], axes[bad], theta[bad]  # pass 2 starts from coarse
+    return c1, ax1, th1, sigma
+
+
+def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, free_slope: bool):
+    """The two step fits of pass 2 (σ free, then σ from the per-dot blur model), optionally with a
+    sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable) (K, R)."""
+    te, s, conv, lev_in, lev_out, _ = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations,
+                                               free_slope=free_slope)
+    usable = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
+    s2 = blur_model(s, usable, ang)
+    if p.shared_blur_iterations:
+        # refit with σ from the smooth per-dot model: t_e no longer trades off against a noisy s
+        te, _, conv, _, _, _ = step_fit(prof, t, te, lev_in, lev_out, sigma,
+                                        p.shared_blur_iterations + int(free_slope) * p.erf_iterations,
+                                        fixed_sigma=np.sqrt(s2), free_slope=free_slope)
+    return te, conv, s, s2, usable
+
+
+def shading(prof, t, te, s, ok, ang, contrast, minor_axes) -> np.ndarray:
+    """(K,) how much each dot's contrast changes from its centre to its rim on its darker side, as a
+    fraction of the contrast ``contrast`` (K,): per ray the slope m of a straight line through the
+    samples of the dot's inside (more than 2 s (K, R) inside the rim t_e (K, R)), then the part of
+    m odd in the ray angle (:func:`odd_slope`, over the ``ok`` rays with 3 such samples or more)
+    times the minor semi-axis (K,)."""
+    w = (t < (te - 2.0 * s)[..., None]).astype(np.float64)
+    n = w.sum(axis=2)
+    tm = (w * t).sum(axis=2) / np.maximum(n, 1)
+    pm = (w * prof).sum(axis=2) / np.maximum(n, 1)
+    dt = (t - tm[..., None]) * w
+    var = (dt * dt).sum(axis=2)
+    m = np.where(var > 0, (dt * (prof - pm[..., None])).sum(axis=2) / np.where(var > 0, var, 1.0), np.nan)
+    grad = odd_slope(m, ok & (n >= 3), ang)
+    return np.hypot(grad[:, 0], grad[:, 1]) * minor_axes / np.where(np.isfinite(contrast), contrast, np.inf)
+
+
+def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | None = None):
+    """Precise rim points along pass-2 rays: (x, y, valid (K, R), s (K, R), ang (R,), gain field).
+
+    gain: the image's gain field, fitted here when None (the first pass sees every dot).
+    """
+    lv = crop.level
+    a_med = float(np.median(axs[:, 0]))
+    n_rays = int(np.clip(round(p.rays_per_px * 2 * np.pi * a_med / lv), p.min_rays, p.max_rays))
+    ang = np.arange(n_rays) * (2 * np.pi / n_rays)
+    # window: ±(k σ + pad); k grows from window_sigmas (sharp rims, where extra flat samples only
+    # add interpolation artefacts) to window_sigmas_blurry for σ ≥ 2 px (blurry rims, whose
+    # tails are not Gaussian and need the wider view)
+    ksig = p.window_sigmas + (p.window_sigmas_blurry - p.window_sigmas) * np.clip(sigma - 1.0, 0.0, 1.0)
+    half_w = ksig * sigma + p.window_pad_px * lv  # (K,)
+    half_w = np.minimum(half_w, np.maximum(1.0 * axs[:, 1], 2.0 * lv))
+    half_w = np.minimum(half_w, np.maximum(1.6 * gap_ratio * axs[:, 1], 2.0 * lv))
+    n2 = int(np.ceil(2 * half_w.max() / lv)) + 1
+    u2 = np.linspace(-1.0, 1.0, n2)
+    rho = ellipse_radius_along(cen, axs, ths, ang)  # (K, R)
+    t = rho[:, :, None] + u2[None, None, :] * half_w[:, None, None]
+    prof, inside = sample_profiles(crop, cen, ang, t)
+    if p.flat_field:
+        if gain is None:
+            gain = fit_gain_field(prof, t, inside.all(axis=2), cen, ang)
+        prof = flatten_profiles(prof, t, cen, ang, gain)
+    ne = max(2, n2 // 6)
+    i_in = prof[..., :ne].mean(axis=2)
+    i_out = prof[..., -ne:].mean(axis=2)
+    contrast = (i_out - i_in) * sign  # (K, R)
+    med_c = masked_median(contrast, contrast > 0, default=np.inf)
+    # area (first-moment) start: t_e = t_start + ∫ (1 − normalised profile) dt
+    span = np.where(np.abs(i_out - i_in) > 1e-6, i_out - i_in, 1.0)
+    g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
+    dts = (2 * half_w / (n2 - 1))[:, None]
+    te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
+    te, conv, s, s2, usable = _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, False)
+    if p.inner_slope:  # dots darker on one side: refit them with a sloped inside, which would move t_e
+        shaded = shading(prof, t, te, np.sqrt(s2), usable, ang, med_c, axs[:, 1]) > p.min_shading
+        if shaded.any():
+            k = np.flatnonzero(shaded)
+            fits = _step_fits(prof[k], t[k], te[k], i_in[k], i_out[k], sigma[k], contrast[k], med_c[k], inside[k],
+                              ang, p, True)
+            for full, part in zip((te, conv, s, s2, usable), fits, strict=True):
+                full[k] = part
+    valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
+    valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(np.sqrt(s2), half_w[:, None] / 2)
+    if p.blur_curvature_correction:
+        te = te + curvature_correction(s2, ang, axs, ths)
+    x = cen[:, 0:1] + np.cos(ang)[None, :] * te
+    y = cen[:, 1:2] + np.sin(ang)[None, :] * te
+    return x, y, valid, s, ang, gain
+
+
+def rim_reach_px(major_semi_axes_px: np.ndarray, gap_ratio: float) -> np.ndarray:
+    """How far from a dot's centre (px) the rim rays look: beyond the rim by up to 60 % of the
+    radius, and never past 80 % of the gap to the neighbouring dot (``gap_ratio``: (pitch −
+    diameter) / diameter)."""
+    return (1.0 + min(0.8 * gap_ratio, 0.6)) * np.asarray(major_semi_axes_px, dtype=float)
+
+
+def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
+                    dark_dots: bool, gap_ratio: float, coarse_factor: int,
+                    params: SubpixelParams | None = None, seed: int = 0,
+                    timings: dict | None = None) -> EllipseFits:
+    """Refine coarse ellipses (already mapped to full-size px) to sub-pixel ellipse fits.
+
+    gap_ratio: (pitch − diameter) / diameter of the plate, bounding how far outside the rim a ray
+    may look before it reaches the neighbouring dot. coarse_factor: downsampling factor of the
+    coarse search (sets the pass-1 search band). timings: optional dict that receives the seconds
+    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting".
+    """
+    p = params or SubpixelParams()
+    rng = np.random.default_rng(seed)
+    clock = time.perf_counter
+    t_begin = clock()
+    sign = 1.0 if dark_dots else -1.0
+    out_lim = rim_reach_px(axes[:, 0], gap_ratio)
+    reach = float(out_lim.max()) + 4.0 * coarse_factor
+    crop1 = crop_rois(image, centres, reach)
+    t0 = clock()
+    cen, axs, ths, sigma = _pass1(crop1, centres, axes, theta, sign, out_lim, coarse_factor, p, rng)
+    t_fit = clock() - t0
+    level = int(np.clip(np.floor(np.median(sigma) / p.sigma_per_level), 1, p.max_level))
+    crop2 = crop1 if level == 1 else crop_rois(image, centres, reach, level)
+    k = len(centres)
+    cen, axs, ths = cen.copy(), axs.copy(), ths.copy()
+    ok = np.zeros(k, bool)
+    rms = np.full(k, np.nan)
+    support = np.zeros(k)
+    s_med = np.full(k, np.nan)
+    todo = np.arange(k)
+    gain = None
+    n_passes = 0
+    for _ in range(p.max_refine):
+        n_passes += 1
+        c0, a0, h0 = cen[todo], axs[todo], ths[todo]
+        x, y, valid, s, ang, gain = _pass2(crop2, c0, a0, h0, sigma[todo], sign, gap_ratio, p, gain)
+        t0 = clock()
+        scale = np.maximum(a0[:, 0], 1.0)
+        conic, inl, dist = robust_ellipse_fit(x, y, valid, c0, scale)
+        okp = is_ellipse(conic) & (inl.sum(axis=1) >= 12)
+        cn, an, tn = ellipse_params(conic, c0, scale)
+        okp &= np.isfinite(cn).all(axis=1) & np.isfinite(an).all(axis=1)
+        shift = np.linalg.norm(np.where(okp[:, None], cn - c0, 0.0), axis=1)
+        upd = todo[okp]
+        cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
+        ok[todo] = okp
+        rms[todo] = np.sqrt((np.where(inl, dist, 0.0) ** 2).sum(axis=1) / np.maximum(inl.sum(axis=1), 1))
+        s_med[todo] = masked_median(s, valid & np.isfinite(s))
+        support[todo] = inl.sum(axis=1) / len(ang)
+        t_fit += clock() - t0
+        # rays cast from an off-centre point cross a strongly blurred, curved rim obliquely, with
+        # an error of order shift·(σ/b)²: dots where that can still matter get another pass
+        oblique = shift * (sigma[todo] / np.maximum(an[:, 1], 1.0)) ** 2
+        todo = todo[okp & (oblique > p.refine_bias_px)]
+        if len(todo) == 0:
+            break
+    if p.pixel_edge_fit and ok.any():
+        t0 = clock()
+        sel = np.flatnonzero(ok)
+        edges = fit_dot_edges(image, cen[sel], axs[sel], ths[sel], s_med[sel])
+        use = sel[edges.ok]
+        cen[use], axs[use], ths[use] = edges.centres[edges.ok], edges.axes[edges.ok], edges.theta[edges.ok]
+        t_fit += clock() - t0
+    if timings is not None:
+        timings["ellipse_fitting"] = timings.get("ellipse_fitting", 0.0) + t_fit
+        timings["rim_sampling"] = timings.get("rim_sampling", 0.0) + clock() - t_begin - t_fit
+    return EllipseFits(cen, axs, ths, rms, support, s_med * 1.0, ok)

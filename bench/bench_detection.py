@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate, facing_camera_pose
 from tasks.simulation.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
-from tasks.vision.camera_model import CameraModel
 from tasks.vision.detection import detect_grid
 
 DIST1 = (-0.062, 0.115, 0.00012, -0.00018, -0.041)

@@ -2,7 +2,7 @@
 
 Usage: .venv/bin/python bench/bench_diagnosis_estimators.py "thermal_drift:axis=Y,driver=time,um_per_hour=30"
 
-The campaign of tests/test_diagnosis.py (its plan, pose covariance and noise draw) with the hidden
+The campaign of tests/analysis/test_diagnosis.py (its plan, pose covariance and noise draw) with the hidden
 effects given; prints, for the calibration's joint solution and for the alternation's converged
 one, the cross-validated RMS of the residual and the diagnosis' top candidates (fitted spec).
 """

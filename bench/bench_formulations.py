@@ -19,8 +19,9 @@ import argparse
 import numpy as np
 import pandas as pd
 
+from tasks.core.units import ARCSEC, UM
 from tasks.machine.description import load_machine
-from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.formulations import (
     DH,
     GLOBAL_POE,

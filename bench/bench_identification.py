@@ -18,6 +18,7 @@ import numpy as np
 from timing import best_of
 
 from tasks.core import se3
+from tasks.core.units import ARCSEC
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pdge_extraction import extract_pdges
 from tasks.identification.pige_identification import (
@@ -27,7 +28,7 @@ from tasks.identification.pige_identification import (
     synthetic_measurements,
 )
 from tasks.machine.description import load_machine
-from tasks.machine.error_model import ARCSEC, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
 from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
 from tasks.simulation.prototype_errors import load_prototype_errors

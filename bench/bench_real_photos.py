@@ -42,9 +42,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_stress import DETECTORS, match_errors, run
 
 from tasks.machine.plate import DotPlate
+from tasks.simulation.detector_stress import errors_up_to_symmetry
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.debug_image import draw_detection
-from tasks.vision.detection.stress import errors_up_to_symmetry
 
 
 def score(detector: str, centres: np.ndarray | None, plate: DotPlate, truth: np.ndarray,

@@ -1,4 +1,4 @@
-"""Benchmark: the detectors on the renderer's stress set (tasks.vision.detection.stress), same images, same process.
+"""Benchmark: the detectors on the renderer's stress set (tasks.simulation.detector_stress), same images, same process.
 
     .venv/bin/python bench/bench_stress.py                 # all cases, 3 timed repeats
     .venv/bin/python bench/bench_stress.py --seeds 3       # each case with 3 seeds (other noise, clutter)
@@ -23,7 +23,7 @@ own); the centre error is that distance. Prints one row per image, then per dete
 rate, the median and worst centre error, the median time, and the time and error ratios against
 cv2.findCirclesGrid on the images both found.
 
-``--random N`` draws N cases with :func:`tasks.vision.detection.stress.random_case` (those whose dots are
+``--random N`` draws N cases with :func:`tasks.simulation.detector_stress.random_case` (those whose dots are
 not all wholly in view are skipped) and counts, for RRHT and findCirclesGrid with clustering, the
 grids found and correctly labelled (RRHT: each dot within a quarter of its size of its own true
 centre, up to the grid's symmetry; OpenCV: one-to-one as above), refused, and found but wrong.
@@ -45,8 +45,8 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tasks.machine.plate import DotPlate
+from tasks.simulation.detector_stress import STRESS_CASES, errors_up_to_symmetry, random_case, render_stress_case
 from tasks.vision.detection import detect_grid
-from tasks.vision.detection.stress import STRESS_CASES, errors_up_to_symmetry, random_case, render_stress_case
 
 DETECTORS = ("rrht", "blob", "hough", "cv2", "cv2+clustering")
 

@@ -13,7 +13,7 @@ them and ``--results``/``--reports`` to folders of your own.
 
 ``poses``: no images. The tests' small plan (50-position sweeps, 150 five-axis and 30 validation
 poses) with the prototype's frozen errors as truth; ``--draws`` noise draws of the pose covariance
-(tests/test_identification.py's) are calibrated and the scatter of every parameter set beside the
+(tests/identification/test_identification.py's) are calibrated and the scatter of every parameter set beside the
 uncertainty the calibration states (the propagated one of the first ``--propagate`` draws, as the
 ``pige`` table gives it; the LM's beside it), the bias and RMS of (est − truth)/u against the truth
 in each fit's gauge (the same calibration of the exact poses, as the ``pige`` table's ``truth``),
@@ -48,6 +48,7 @@ import pandas as pd
 from tasks.analysis.compensation import desired_tip_poses
 from tasks.analysis.residuals import trend_summary
 from tasks.core import se3
+from tasks.core.units import ARCSEC, UM
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.parameters import default_parameters
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS
@@ -55,7 +56,6 @@ from tasks.identification.pige_identification import calibrate, synthetic_measur
 from tasks.identification.uncertainty import propagate_uncertainty
 from tasks.lake.store import read_table
 from tasks.machine.description import AXIS_ORDER, load_machine
-from tasks.machine.error_model import ARCSEC, UM
 from tasks.machine.kinematics import forward
 from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
 from tasks.simulation.prototype_errors import load_prototype_errors

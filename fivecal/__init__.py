@@ -1,8 +1,5 @@
 """fivecal: vision-based calibration of a five-axis precision dispensing machine."""
 
-from importlib.metadata import PackageNotFoundError, version
+from tasks.core.version import FIVECAL_VERSION as __version__
 
-try:
-    __version__ = version("fivecal")
-except PackageNotFoundError:  # running from a source tree without installation
-    __version__ = "0.0.0+source"
+__all__ = ["__version__"]

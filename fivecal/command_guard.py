@@ -32,7 +32,7 @@ from typing import Any
 import typer
 from typer.exceptions import TyperException
 
-from fivecal import server_guard
+from flows import server_guard
 
 GRACE_S = 5.0
 DEBUG_ENV = "FIVECAL_DEBUG"

@@ -4,7 +4,7 @@
 A thread checks every :data:`POLL_S` seconds whether this process still has the parent it was
 started by (a killed parent's children are handed to another process); when not, it asks uvicorn
 to shut down (SIGTERM) and, :data:`GRACE_S` seconds later, exits regardless. See
-fivecal/server_guard.py.
+flows/server_guard.py.
 """
 
 from __future__ import annotations

@@ -18,7 +18,6 @@ import pandas as pd
 from prefect import flow, get_run_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 
-import fivecal
 from flows.ingest import ingest_campaign
 from flows.measure import measure_campaign
 from flows.runners import image_task_runner
@@ -44,6 +43,7 @@ from tasks.campaign.capture_request import (
     write_capture_request,
 )
 from tasks.campaign.ingest import CampaignError, load_campaign_metadata
+from tasks.core.version import FIVECAL_VERSION
 from tasks.identification.measurements import assemble_measurements, capture_context
 from tasks.identification.pige_identification import null_space_sentences
 from tasks.identification.uncertainty import expected_tip_errors
@@ -213,7 +213,7 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     formulations = formulations_task.submit(machine, result.model,
                                             measurements.stage("pige").commands).result()
 
-    provenance = {"fivecal_version": fivecal.__version__, "detector": detector, "campaign": str(folder),
+    provenance = {"fivecal_version": FIVECAL_VERSION, "detector": detector, "campaign": str(folder),
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
                   "identification_code": IDENTIFICATION_CODE_VERSION, "effects": [e.spec() for e in base.effects],
                   "orientation_objective": orientation, "verification_repeats": verification_repeats,

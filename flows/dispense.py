@@ -25,10 +25,10 @@ import numpy as np
 import pandas as pd
 from prefect import flow, get_run_logger
 
-import fivecal
 from flows.lake_calibration import calibration_from_lake
 from tasks.analysis.compensation import desired_tip_poses
 from tasks.analysis.verification import modelled_errors, predicted_by, verification_table
+from tasks.core.version import FIVECAL_VERSION
 from tasks.dispensing.capture import CAMERA, plan_rows, write_plan
 from tasks.dispensing.inspection import load_config
 from tasks.dispensing.measure import dispense_rows, load_capture_manifest
@@ -150,7 +150,7 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     ids, commands = validation.table.image_id.tolist(), validation.commands
     desired = desired_tip_poses(machine, commands)
     after_tip = compensate_task.submit(machine, fit.model, commands, orientation).result().commands
-    provenance = {"fivecal_version": fivecal.__version__, "campaign": str(folder),
+    provenance = {"fivecal_version": FIVECAL_VERSION, "campaign": str(folder),
                   "dispense_code": DISPENSE_CODE_VERSION,
                   "workpiece": workpiece.to_dict(), "inspection": config.__dict__,
                   "tip_offset_um": fit.offset_um.tolist(), "tip_offset_uncertainty_um": fit.uncertainty_um.tolist(),

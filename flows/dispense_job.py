@@ -23,8 +23,8 @@ import cv2
 import pandas as pd
 from prefect import flow, get_run_logger
 
-import fivecal
 from flows.lake_calibration import calibration_from_lake
+from tasks.core.version import FIVECAL_VERSION
 from tasks.dispense_job.area_acceptance import AcceptanceRules
 from tasks.dispense_job.bead_path import bead_path
 from tasks.dispense_job.program import write_program
@@ -98,7 +98,7 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
         if any(not r.beads.empty for r in results) else pd.DataFrame()
     if not results:
         raise ValueError("no tray could be dispensed: " + "; ".join(failures))
-    provenance = {"fivecal_version": fivecal.__version__, "campaign": str(campaign), "job_code": JOB_CODE_VERSION,
+    provenance = {"fivecal_version": FIVECAL_VERSION, "campaign": str(campaign), "job_code": JOB_CODE_VERSION,
                   "images": [str(i) for i in images], "calibration": list(cal.notes), "failures": failures}
     tables = {"dispense_areas": areas, "dispense_paths": paths}
     if not beads.empty:

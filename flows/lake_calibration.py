@@ -11,13 +11,13 @@ from tasks.campaign.ingest import load_campaign_metadata
 from tasks.dispensing.measure import full_resolution
 from tasks.identification.measurements import Measurements, assemble_measurements
 from tasks.lake.store import read_provenance, read_table
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import Machine, load_machine
 from tasks.machine.effects import recorded_effects
 from tasks.machine.error_model import ErrorModel
 from tasks.simulation.simulate import read_truth
 from tasks.simulation.verification_capture import is_simulated
 from tasks.steps.calibration import identify_task
-from tasks.vision.camera_model import CameraModel
 from tasks.vision.detector_comparison import intrinsics_from_table
 from tasks.vision.pipeline import nominal_machine
 

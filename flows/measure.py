@@ -10,10 +10,10 @@ from typing import Any
 import pandas as pd
 from prefect import flow, get_run_logger
 
-import fivecal
 from flows.ingest import ingest_campaign
 from flows.runners import image_task_runner, subflow_task_runner
 from tasks.campaign.ingest import load_campaign_metadata
+from tasks.core.version import FIVECAL_VERSION
 from tasks.lake.store import write_partitions
 from tasks.machine.description import CALIBRATION_STAGE
 from tasks.steps.vision import calibrate, detect_chunk, poses, read_images
@@ -65,7 +65,7 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     pose_table = pose_future.result()
     cached["poses"] = int(pose_future.state.name == "Cached")
 
-    provenance = {"fivecal_version": fivecal.__version__, "detector": detector,
+    provenance = {"fivecal_version": FIVECAL_VERSION, "detector": detector,
                   "images_content_sha256": content_key(images[["image_id", "content_sha256"]]),
                   "campaign": str(folder)}
     # the step's three tables together: all replaced, or (an error before the swaps) none

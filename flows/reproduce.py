@@ -38,6 +38,7 @@ from typing import Any
 
 import pandas as pd
 
+from tasks.core.version import FIVECAL_VERSION, code_fingerprint
 from tasks.lake.schema import PARTITION, TABLES
 from tasks.report.data import (
     DATA_DIR,
@@ -45,7 +46,6 @@ from tasks.report.data import (
     PARAMETERS_FILE,
     REPORT_TABLES,
     campaign_file_hashes,
-    code_fingerprint,
     environment,
 )
 
@@ -333,14 +333,13 @@ def format_comparison(c: Comparison) -> str:
 
 def describe(recorded: Recorded) -> str:
     """One paragraph: what the report is and what it was made with, against what runs now."""
-    import fivecal
     from tasks.steps.calibration import IDENTIFICATION_CODE_VERSION
 
     prov = recorded.parameters["provenance"]
     code, now = recorded.parameters.get("code_sha256"), code_fingerprint()
     lines = [f"report {recorded.folder}: campaign {recorded.parameters['campaign_id']} "
              f"({recorded.campaign}), run {recorded.parameters['run']}, detector {recorded.detector}",
-             f"recorded with fivecal {prov.get('fivecal_version')} (now {fivecal.__version__}), identification "
+             f"recorded with fivecal {prov.get('fivecal_version')} (now {FIVECAL_VERSION}), identification "
              f"code {prov.get('identification_code')} (now {IDENTIFICATION_CODE_VERSION}), code sha256 "
              f"{str(code)[:12]}… (now {now[:12]}…)",
              f"recorded tables: {', '.join(f'{n} ({len(t)} rows)' for n, t in recorded.tables.items())}"]
@@ -351,7 +350,7 @@ def describe(recorded: Recorded) -> str:
     if "opencv_threads" in env:
         lines.append(f"OpenCV threads as recorded: {env['opencv_threads']}")
     if (prov.get("fivecal_version"), prov.get("identification_code"), code) != \
-            (fivecal.__version__, IDENTIFICATION_CODE_VERSION, now):
+            (FIVECAL_VERSION, IDENTIFICATION_CODE_VERSION, now):
         lines.append("note: the code differs from the report's; differences may come from that")
     return "\n".join(lines)
 

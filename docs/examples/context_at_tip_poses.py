@@ -27,11 +27,12 @@ from tasks.analysis.diagnosis import diagnose
 from tasks.analysis.verification import tip_errors_with_tool_direction, vbm_errors
 from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES, planned_capture_context
 from tasks.core import se3
+from tasks.core.units import ARCSEC
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pige_identification import calibrate, synthetic_measurements
 from tasks.machine.description import load_machine
 from tasks.machine.effects import EFFECTS, load_effect_modules, parse_effect, private_families
-from tasks.machine.error_model import ARCSEC, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
 from tasks.simulation.campaign_plan import PLANS, plan_campaign
 from tasks.simulation.prototype_errors import load_prototype_errors

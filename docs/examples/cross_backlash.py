@@ -10,9 +10,9 @@ direction of the reversing one. The catalogue's ``backlash`` acts along its own 
 
 import numpy as np
 
+from tasks.core.units import UM
 from tasks.machine.description import AXIS_ORDER
 from tasks.machine.effects import Effect, Param, register
-from tasks.machine.error_model import UM
 
 LINEAR = ("X", "Y", "Z")
 

@@ -1,1 +1,1 @@
-"""What the identified model says and where it fails: compensation, verification, residuals, ladder, diagnosis, drift."""
+"""What the identified model says and where it fails: compensation, verification, residuals, diagnosis, drift."""

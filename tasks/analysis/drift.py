@@ -346,7 +346,7 @@ class Verdict:
 
 
 def _describe(rows: pd.DataFrame, limit: int = 8) -> str:
-    from tasks.report.tables import UNIT_LABEL
+    from tasks.core.units import UNIT_LABEL
 
     parts = [f"{r.quantity} {r.delta_from_reference:+.2f} {UNIT_LABEL.get(r.unit, r.unit)} (z = {r.z:.1f})"
              for r in rows.sort_values("z", ascending=False).head(limit).itertuples()]

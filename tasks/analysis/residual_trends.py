@@ -12,7 +12,7 @@ variable and is not a trend. With b the K bin means and d = b − b̄ (b̄ their
 inverse of Σ), the statistic is dᵀ Σ⁺ d / (K − 1), Σ the covariance of the bin means, referred to
 an F distribution with Welch's correction for variances estimated from each bin's own images
 (Welch 1951, the one-way analysis of unequal variances; on 612 pure-noise panels 8.0 % were flagged
-at 5 % without it, 6.9 % with it: tests/test_residuals.py):
+at 5 % without it, 6.9 % with it: tests/analysis/test_residuals.py):
 
     Σ = diag(s²_k / n_k) + Σ_shared
 

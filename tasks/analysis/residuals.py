@@ -48,6 +48,7 @@ import pandas as pd
 from scipy import stats
 
 from tasks.core import se3
+from tasks.core.units import ARCSEC, UM
 from tasks.identification.measurements import COMMAND_COLUMNS, Measurements
 from tasks.identification.pige_identification import (
     IDENTIFICATION_CAMERA,
@@ -55,10 +56,10 @@ from tasks.identification.pige_identification import (
     pose_residuals,
     whitening,
 )
+from tasks.machine.camera_model import CameraModel, project_points
 from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE, Machine
-from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_model import CameraModel, project_points
 
 COMPONENTS = ("dx_um", "dy_um", "dz_um", "rx_arcsec", "ry_arcsec", "rz_arcsec")
 """The six residual components (v in µm, ω in arcsec); plate frame, ``cam_`` prefix: camera frame."""

@@ -15,15 +15,15 @@ can remove (docs/calibrate.md, step 6).
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 import pandas as pd
 
+from tasks.campaign.folder import validation_id_of
 from tasks.core import se3
+from tasks.core.units import ARCSEC
 from tasks.machine.context import PoseContext
 from tasks.machine.description import Machine
-from tasks.machine.error_model import ARCSEC, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward, tip_pose_error
 from tasks.vision.poses import covariances_from_table, mean_poses, poses_from_table
 
@@ -76,22 +76,6 @@ def vbm_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, command
     out["noise_floor_position_um"], out["noise_floor_orientation_arcsec"] = noise_floor(tips, cov)
     out["noise_floor_tool_direction_arcsec"] = tool_direction_noise_floor(tips, cov)
     return out
-
-
-CAPTURE_SUFFIX = "_v"
-
-
-def capture_image_id(validation_id: str, repeat: int = 0) -> str:
-    """The follow-up capture's name for repeat ``repeat`` of validation pose ``validation_id``:
-    ``<id>_v`` for the first image, ``<id>_v<k>`` for repeat k ≥ 1 (docs/campaign-format.md)."""
-    return f"{validation_id}{CAPTURE_SUFFIX}" + (str(repeat) if repeat else "")
-
-
-def validation_id_of(capture_id: str) -> str | None:
-    """The validation pose a capture image re-measures (the inverse of :func:`capture_image_id`);
-    None for a name that does not follow it."""
-    m = re.fullmatch(rf"(.+){CAPTURE_SUFFIX}(\d*)", capture_id)
-    return None if m is None or m.group(2).startswith("0") else m.group(1)
 
 
 def capture_errors(machine: Machine, model: ErrorModel, desired: np.ndarray, commands: np.ndarray, image_ids,

@@ -7,7 +7,7 @@ campaign ``fivecal calibrate`` writes the request into ``<campaign>/captures/<ca
 * ``campaign.json``: the campaign's metadata under the campaign_id ``<id>-<capture_id>``;
 * ``capture_plan.csv``: the images to take, in order (image_id, path, camera, stage, group,
   repeat and the commanded X_mm … C_deg, the compensated commands), ``repeats`` passes over the
-  poses (names from :func:`tasks.analysis.verification.capture_image_id`).
+  poses (names from :func:`tasks.campaign.folder.capture_image_id`).
 
 The lab's capture software drives the machine through the rows, writes ``images/`` and
 ``manifest.csv`` (the same rows with timestamp and, optionally, temperature_c) into that folder,
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tasks.analysis.verification import capture_image_id
-from tasks.campaign.folder import COMMAND_COLUMNS, MANIFEST_FILE, METADATA_FILE, atomic_write_text, image_relpath
+from tasks.campaign.folder import COMMAND_COLUMNS, MANIFEST_FILE, METADATA_FILE, capture_image_id, image_relpath
 from tasks.campaign.ingest import CampaignError, load_manifest
+from tasks.core.atomic_io import atomic_write_text
 from tasks.machine.context import PoseContext, approach_directions
 
 PLAN_FILE = "capture_plan.csv"

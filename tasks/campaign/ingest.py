@@ -707,9 +707,9 @@ def check_campaign(folder: str | Path, chunk_size: int = CHUNK_SIZE) -> tuple[di
 
 def ingest_provenance(folder: str | Path, images: pd.DataFrame) -> dict[str, Any]:
     """Provenance stored with the images table: fivecal version, input hash, parameters."""
-    import fivecal
+    from tasks.core.version import FIVECAL_VERSION
 
-    return {"fivecal_version": fivecal.__version__, "input_sha256": campaign_content_hash(folder, images),
+    return {"fivecal_version": FIVECAL_VERSION, "input_sha256": campaign_content_hash(folder, images),
             "parameters": {"code_version": CODE_VERSION, "opencv": cv2.__version__,
                            "stroke_tolerance": STROKE_TOLERANCE}}
 

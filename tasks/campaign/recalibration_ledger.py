@@ -36,7 +36,7 @@ from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 
-from tasks.campaign.folder import atomic_write_text
+from tasks.core.atomic_io import atomic_write_text
 from tasks.lake.store import _check_name, results_root
 
 LEDGER_DIR = ".recalibration"

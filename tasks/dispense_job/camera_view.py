@@ -14,10 +14,10 @@ import numpy as np
 
 from tasks.core import se3
 from tasks.dispense_job.boards import TRAY_RGB, TraySpec, tray_to_pixels
+from tasks.machine.camera_model import CameraModel, project_points
 from tasks.machine.description import Machine
 from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
-from tasks.vision.camera_model import CameraModel, project_points
 
 CAMERA = "camera1"
 MAP_STEP_PX = 16  # the pixel → surface map is computed on this grid and interpolated (distortion is smooth)

@@ -27,9 +27,9 @@ from tasks.analysis.compensation import compensate
 from tasks.dispensing.measure import pixels_to_surface
 from tasks.dispensing.tip import landing_points
 from tasks.dispensing.workpiece import Workpiece, dispensing_commands
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import Machine
 from tasks.machine.error_model import ErrorModel
-from tasks.vision.camera_model import CameraModel
 
 # the paper's Table 2: pixel coordinates (u, v) and the needle's dispensing position (X, Y) in mm
 PAPER_TABLE2_PX = np.array([[706.8, 433.9], [1874.5, 548.2], [1095.4, 1120.1], [2098.5, 2056.5], [526.3, 1599.5]])

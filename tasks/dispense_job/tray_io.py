@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from tasks.campaign.folder import atomic_write_text
+from tasks.core.atomic_io import atomic_write_text
 from tasks.dispense_job.boards import TraySpec, apply_light, board_truth, paint_tray, place_boards
 from tasks.dispense_job.camera_view import camera_image, hand_eye_marks, project_to_camera
 from tasks.dispense_job.pixel_map import jog_over

@@ -36,9 +36,9 @@ from tasks.dispense_job.pixel_map import (
 from tasks.dispense_job.program import Motion, program_rows, program_time_s
 from tasks.dispense_job.tray_io import STANDOFF_MM, Tray, camera_spec, tray_spec
 from tasks.dispensing.tip import landing_points
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import Machine, load_machine
 from tasks.machine.error_model import ErrorModel
-from tasks.vision.camera_model import CameraModel
 
 PHASES = ("compensated", "nominal", "planar")
 TOUR_METHODS = ("optimal", "annealing", "nearest", "return_to_origin")

@@ -26,15 +26,16 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from tasks.campaign.folder import TRUTH_DIR, atomic_write_text, staged_folder
+from tasks.campaign.folder import TRUTH_DIR
+from tasks.core.atomic_io import atomic_write_text, staged_folder
 from tasks.dispensing.dot_render import Lighting, RingScene, draw_defect, random_dot, render_scene
 from tasks.dispensing.tip import landing_points
 from tasks.dispensing.workpiece import Workpiece, commands_frame, ring_ids
+from tasks.machine.camera_model import project_points
 from tasks.machine.description import Machine, load_machine
 from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
 from tasks.simulation.simulate import read_truth
-from tasks.vision.camera_model import project_points
 
 PLAN_FILE = "dispense_plan.csv"
 ROI_PX = 128

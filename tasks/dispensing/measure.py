@@ -19,11 +19,12 @@ import numpy as np
 import pandas as pd
 
 from tasks.core import se3
+from tasks.core.units import UM
 from tasks.dispensing.inspection import InspectionConfig, inspect_ring_image
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import Machine
-from tasks.machine.error_model import UM, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
-from tasks.vision.camera_model import CameraModel
 
 REQUIRED = ("image_id", "path", "phase", "ring_id", "ring_x_mm", "ring_y_mm", "surface_z_mm", "X_mm", "Y_mm",
             "Z_mm", "A_deg", "C_deg", "image_X_mm", "image_Y_mm", "image_Z_mm", "image_A_deg", "image_C_deg")

@@ -22,10 +22,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from tasks.core.units import UM
 from tasks.machine.context import PoseContext
 from tasks.machine.description import Machine
 from tasks.machine.effects import ToolOffset
-from tasks.machine.error_model import UM, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
 
 MAX_CONDITION = 1e3  # beyond it the tool-axis component is not seen (mean |sin A| below ~1e-3)

@@ -42,7 +42,6 @@ from dataclasses import replace
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from tasks.analysis.diagnosis.suggestions import identifying_poses
 from tasks.identification.effect_params import (
     amplitude_names,
     combine_quadrature,
@@ -52,6 +51,7 @@ from tasks.identification.effect_params import (
     phase_name,
     unit_pair,
 )
+from tasks.identification.identifying_poses import identifying_poses
 from tasks.identification.imaging import imaging_corrected
 from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import ParamSpec, apply_parameters, default_parameters

@@ -27,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from tasks.core import se3
+from tasks.machine.camera_model import distort_normalised
 from tasks.machine.description import Machine
-from tasks.vision.camera_model import distort_normalised
 
 EXTRA_TERMS = ("k4", "s1", "s2", "s3", "s4")
 

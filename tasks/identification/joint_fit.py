@@ -42,7 +42,7 @@ poses and of the other cameras' sweeps,
   scatter is the profile's own step-to-step change, far below the stated noise) that ratio was
   3.6·10⁴ on C's εx and 1.2·10⁶ on its δy: C's εx, smoothed by GCV's λ to 0.9″ RMS off the
   truth, was held there, and the unpenalised profiles of X, Y and Z took up the five-axis poses'
-  residual (up to 5.9″ of X's εx, 1.6 µm at held-out tips; tests/test_identification.py).
+  residual (up to 5.9″ of X's εx, 1.6 µm at held-out tips; tests/identification/test_identification.py).
 
 Gauss–Newton with J held, three steps, then the constant fit's LM from the result (its diagnostics
 and the Jacobian at the new point), twice: the system is rebuilt about the first solution, because

@@ -18,9 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MAX_UNCERTAINTY = 50.0
-"""Natural units (µm, arcsec, one unit of an effect's parameter): a direction known no better is
-not identified."""
+from tasks.core.units import MAX_UNCERTAINTY
 
 
 @dataclass

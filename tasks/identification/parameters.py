@@ -20,7 +20,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from tasks.machine.error_model import ARCSEC, PIGE_NAMES, PIGE_SCREWS, UM, ErrorModel
+from tasks.core.units import ARCSEC, UM
+from tasks.machine.error_model import PIGE_NAMES, PIGE_SCREWS, ErrorModel
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ of its signature; a linear or slowly varying one is swallowed whole.
 
 λ_jc is found as the extraction finds it (:meth:`tasks.identification.smoothing.SplineBasis.gcv_roughness`)
 on the mean error motions of the extraction's model, so H_jc is the smoother the extraction used
-(tests/test_diagnosis.py checks the profiles it gives against the extraction's).
+(tests/analysis/test_diagnosis.py checks the profiles it gives against the extraction's).
 """
 
 from __future__ import annotations

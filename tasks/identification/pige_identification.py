@@ -20,7 +20,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
-from tasks.identification.levenberg_marquardt import MAX_UNCERTAINTY, FitResult, levenberg_marquardt
+from tasks.core.units import MAX_UNCERTAINTY
+from tasks.identification.levenberg_marquardt import FitResult, levenberg_marquardt
 from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import ParamSpec, apply_parameters, default_parameters
 from tasks.identification.pdge_extraction import PdgeResult, extract_pdges

@@ -20,7 +20,7 @@ Generalized Linear Models*, §2.1), B = W^-½ K W^-½ = U diag(d) Uᵀ gives
 
 so each evaluation is O(n), and the fitted values are H(λ) y (:class:`SplineBasis`, built once
 per sweep). The result is scipy's up to the
-tolerance of the λ search (tests/test_identification.py compares them).
+tolerance of the λ search (tests/identification/test_identification.py compares them).
 
 The bound (0, n) is in the units of x (mm, or rad for a rotary axis), so it caps the smoothing
 differently per axis (a 50-position sweep keeps at least 7.6 effective degrees of freedom at

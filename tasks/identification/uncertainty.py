@@ -33,7 +33,7 @@ linearised about the identified solution: it starts there and replaces each cons
 Gauss–Newton step with the fit's own Jacobian (:func:`_linearised_refit`); the camera re-fits hold
 the PDGE smoothers' roughness (:mod:`tasks.identification.smoothing`), the noise draws choose it
 again. It measures how this estimator moves with its inputs (the 33 re-fits of the demo take
-about 19 s on 2 cores). tests/test_identification.py checks its camera part against re-running
+about 19 s on 2 cores). tests/identification/test_identification.py checks its camera part against re-running
 the whole calibration. Units: the parameters' internal units (mm, rad).
 """
 
@@ -46,6 +46,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from tasks.core import se3
+from tasks.core.units import ARCSEC, UM
 from tasks.identification.imaging import imaging_corrected
 from tasks.identification.levenberg_marquardt import right_singular
 from tasks.identification.measurements import Measurements
@@ -60,7 +61,7 @@ from tasks.identification.pige_identification import (
     whitening,
 )
 from tasks.machine.description import Machine
-from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
 
 NOISE_DRAWS = 16

@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from tasks.identification.levenberg_marquardt import MAX_UNCERTAINTY
+from tasks.core.units import MAX_UNCERTAINTY
 
 PARTITION = "campaign_id"
 DTYPES = ("string", "int64", "float64", "bool", "timestamp[us, UTC]")

@@ -66,7 +66,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from tasks.campaign.folder import atomic_write_parquet, current_umask, fsync_path
+from tasks.core.atomic_io import atomic_write_parquet, current_umask, fsync_path
 from tasks.lake import schema as lake_schema
 
 DEFAULT_RESULTS_DIR = Path("data/results")

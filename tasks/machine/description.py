@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from tasks.core import se3
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_model import CameraModel
 
 MACHINES_DIR = Path(__file__).parent / "machines"
 AXIS_ORDER = ("X", "Y", "Z", "A", "C")  # column order of command arrays everywhere

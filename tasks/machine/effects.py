@@ -21,8 +21,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from tasks.core.units import ARCSEC, UM
 from tasks.machine.description import AXIS_ORDER, Machine
-from tasks.machine.error_model import ARCSEC, UM
 
 LINEAR_AXES = ("X", "Y", "Z")
 ROTARY_AXES = ("A", "C")

@@ -28,7 +28,7 @@ beta_XZ     Z      rotation about y              Z's +z end tipped toward +x (Z�
 ==========  =====  ============================  ==============================================
 
 Within a joint the factors are multiplied in the order of eqs. 9–11 (the table order above). Signs
-follow the right-hand rule about the screw's axis; tests/test_sign_conventions.py pins them.
+follow the right-hand rule about the screw's axis; tests/machine/test_sign_conventions.py pins them.
 Units: files and reports use µm and arcsec; inside, mm and rad.
 
 PDGEs: each axis has six error motions (δx, δy, δz, εx, εy, εz) as smooth functions of its own
@@ -45,10 +45,9 @@ from functools import lru_cache
 import numpy as np
 
 from tasks.core import se3
+from tasks.core.units import ARCSEC, UM
 from tasks.machine.description import AXIS_ORDER
-
-ARCSEC = np.pi / (180.0 * 3600.0)  # rad per arcsec
-UM = 1e-3  # mm per µm
+from tasks.machine.effects import parse_effect
 
 # name -> (joint, screw index 0..5 in (tx, ty, tz, rx, ry, rz)), in the product order of eqs. 9–11
 PIGE_SCREWS: dict[str, tuple[str, int]] = {
@@ -254,8 +253,6 @@ class ErrorModel:
     def from_dict(cls, d: dict, families: dict | None = None) -> ErrorModel:
         """The model of :meth:`to_dict`; families: effect families beyond the catalogue
         (:func:`tasks.machine.effects.parse_effect`)."""
-        from tasks.machine.effects import parse_effect
-
         return cls(
             pige={n: pige_to_internal(n, float(v)) for n, v in d.get("pige", {}).items()},
             pdge={a: AxisProfile.from_dict(p) for a, p in d.get("pdge", {}).items()},

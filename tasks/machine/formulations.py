@@ -63,9 +63,10 @@ import numpy as np
 import pandas as pd
 
 from tasks.core import se3
+from tasks.core.units import ARCSEC, UM
 from tasks.machine.context import PoseContext
 from tasks.machine.description import AXIS_ORDER, Machine
-from tasks.machine.error_model import ARCSEC, PIGE_SCREWS, UM, ErrorModel, pige_joint_transforms, pige_to_internal
+from tasks.machine.error_model import PIGE_SCREWS, ErrorModel, pige_joint_transforms, pige_to_internal
 from tasks.machine.kinematics import forward, position_orientation_error
 
 TABLE5_COLUMNS = (

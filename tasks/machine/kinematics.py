@@ -28,9 +28,10 @@ import numpy as np
 import pandas as pd
 
 from tasks.core import se3
+from tasks.core.units import ARCSEC, UM
 from tasks.machine.context import PoseContext
 from tasks.machine.description import AXIS_ORDER, Machine
-from tasks.machine.error_model import ARCSEC, UM, ErrorModel, pige_joint_transforms
+from tasks.machine.error_model import ErrorModel, pige_joint_transforms
 
 
 def ideal_joint_motion(machine: Machine, axis: str, theta: np.ndarray) -> np.ndarray:

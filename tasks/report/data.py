@@ -17,13 +17,14 @@ A report folder holds::
 
 from __future__ import annotations
 
-import hashlib
 import json
 import platform
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tasks.campaign.folder import MANIFEST_FILE, METADATA_FILE, atomic_write_parquet, atomic_write_text
+from tasks.campaign.folder import MANIFEST_FILE, METADATA_FILE
+from tasks.core.atomic_io import atomic_write_parquet, atomic_write_text
+from tasks.core.version import FIVECAL_VERSION, code_fingerprint
 from tasks.lake import schema as lake_schema
 
 if TYPE_CHECKING:
@@ -51,27 +52,6 @@ def campaign_file_hashes(folder: str | Path | None) -> dict[str, str | None]:
     return out
 
 
-def code_fingerprint(packages: dict[str, Path] | None = None) -> str:
-    """sha256 of fivecal's own code and data files: every .py and .json file of the fivecal, flows
-    and tasks packages (machine descriptions included; ``packages``: {name: folder} instead),
-    relative path and content, in path order. fivecal's version number does not change while the
-    code is edited; this does."""
-    if packages is None:
-        import fivecal
-        import flows
-        import tasks
-
-        packages = {p.__name__: Path(p.__file__).parent for p in (fivecal, flows, tasks)}
-    h = hashlib.sha256()
-    for name, base in sorted(packages.items()):
-        for f in sorted(Path(base).rglob("*")):
-            if f.suffix not in (".py", ".json") or "__pycache__" in f.parts:
-                continue
-            h.update(f"{name}/{f.relative_to(base).as_posix()}\n".encode())
-            h.update(hashlib.sha256(f.read_bytes()).digest())
-    return h.hexdigest()
-
-
 def environment() -> dict:
     """The libraries and settings the numbers depend on: versions, OpenCV's thread count, CPU arch."""
     import cv2
@@ -89,7 +69,6 @@ def write_report_data(folder: Path, data: ReportData) -> dict[str, Path]:
     """Write ``folder/data/``: one Parquet file per table of :data:`REPORT_TABLES` that ``data``
     carries (units and frames as in the lake), inputs.parquet when ``data.images`` is given, and
     parameters.json. Returns {name: path} of the files written."""
-    import fivecal
 
     out = Path(folder) / DATA_DIR
     out.mkdir(parents=True, exist_ok=True)
@@ -109,7 +88,7 @@ def write_report_data(folder: Path, data: ReportData) -> dict[str, Path]:
                              {"campaign_id": data.campaign_id})
         written["inputs"] = out / INPUTS_FILE
     parameters = {"format_version": FORMAT_VERSION, "campaign_id": data.campaign_id, "run": data.run,
-                  "simulated": data.simulated, "written_by_fivecal": fivecal.__version__,
+                  "simulated": data.simulated, "written_by_fivecal": FIVECAL_VERSION,
                   "provenance": data.provenance,
                   "campaign_files_sha256": campaign_file_hashes(data.provenance.get("campaign")),
                   "code_sha256": code_fingerprint(), "environment": environment(),

@@ -13,8 +13,8 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from tasks.analysis.drift import PDGE_COMPONENTS, PDGE_STATISTICS, DriftTolerance
+from tasks.core.units import UNIT_LABEL
 from tasks.report.figures import _no_data, new_figure
-from tasks.report.tables import UNIT_LABEL
 
 
 def campaign_ranks(drift: pd.DataFrame) -> dict[str, int]:

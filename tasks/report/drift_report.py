@@ -28,11 +28,12 @@ from pathlib import Path
 import pandas as pd
 
 from tasks.analysis.drift import DriftTolerance, Verdict
+from tasks.core.units import UNIT_LABEL
 from tasks.lake.store import _swap_in
 from tasks.report import drift_figures
 from tasks.report.figures import save_png
 from tasks.report.render import markdown_to_html, provenance_section
-from tasks.report.tables import UNIT_LABEL, fmt, fmt_pm, fmt_unit, md_table
+from tasks.report.tables import fmt, fmt_pm, fmt_unit, md_table
 
 TABLE_CAMPAIGNS = 8
 FLAG = "⚑"

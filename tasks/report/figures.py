@@ -16,13 +16,13 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
+from tasks.core.units import UNIT_LABEL
 from tasks.report.tables import (
     DIRECTIONS,
     ROTATION,
     SEED_DIRECTION_STD,
     SOURCE_LABEL,
     TRANSLATION,
-    UNIT_LABEL,
     axes_in,
     column,
     translation_rotation,

@@ -39,9 +39,9 @@ from tasks.analysis.residuals import (
     worst_poses,
 )
 from tasks.identification.measurements import COMMAND_COLUMNS
+from tasks.machine.camera_model import CameraModel
 from tasks.report.figures import _no_data, new_figure
 from tasks.report.tables import fmt, fmt_g, md_table
-from tasks.vision.camera_model import CameraModel
 
 # variable -> (scale applied to x for display, axis label)
 VARIABLE_LABEL = {"X_mm": (1.0, "X (mm)"), "Y_mm": (1.0, "Y (mm)"), "Z_mm": (1.0, "Z (mm)"), "A_deg": (1.0, "A (deg)"),

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
+from tasks.core.units import UNIT_LABEL
 from tasks.simulation.truth_stats import SEED_AFTER, SEED_BEFORE, SEED_PDGE_MEANS
 
 DASH = "–"
@@ -31,7 +32,6 @@ QUANTITIES = (("position", "position_um", "um"), ("orientation", "orientation_ar
 STATISTICS = ("mean", "max", "std")
 SOURCES = ("vbm", "truth")
 SOURCE_LABEL = {"vbm": "VBM", "truth": "truth"}
-UNIT_LABEL = {"um": "µm", "arcsec": "arcsec", "mm": "mm", "deg": "deg"}
 DECIMALS = {"um": 2, "arcsec": 1}
 TRANSLATION = ("dx_um", "dy_um", "dz_um")
 ROTATION = ("ex_arcsec", "ey_arcsec", "ez_arcsec")

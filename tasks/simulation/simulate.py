@@ -16,17 +16,10 @@ import cv2
 import numpy as np
 import pandas as pd
 
-import fivecal
-from tasks.campaign.folder import (
-    COMMAND_COLUMNS,
-    TRUTH_DIR,
-    atomic_write_bytes,
-    atomic_write_parquet,
-    atomic_write_text,
-    image_relpath,
-    write_manifest,
-    write_metadata,
-)
+from tasks.campaign.folder import COMMAND_COLUMNS, TRUTH_DIR, image_relpath, write_manifest, write_metadata
+from tasks.core.atomic_io import atomic_write_bytes, atomic_write_parquet, atomic_write_text
+from tasks.core.version import FIVECAL_VERSION
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.context import PoseContext, approach_directions
 from tasks.machine.description import AXIS_ORDER, Machine, load_machine
 from tasks.machine.effects import camera_changes, module_source_file, parse_effect, private_families
@@ -35,7 +28,6 @@ from tasks.machine.kinematics import forward
 from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
 from tasks.simulation.prototype_errors import load_prototype_errors
 from tasks.simulation.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
-from tasks.vision.camera_model import CameraModel
 
 SIZES = {"full": 1, "small": 4}  # sensor binning factor per image size
 CAMPAIGN_EPOCH = pd.Timestamp("2026-01-05T08:00:00Z")
@@ -186,7 +178,7 @@ def campaign_metadata(machine: Machine, campaign_id: str, size: str) -> dict:
                                              "tip", "workpiece", "views", "plates", "notes")}
     targets = dict(src.get("calibration_targets", {}))  # optional: a camera without one calibrates on its plate
     return {"format_version": 1, "campaign_id": campaign_id, "simulated": True,
-            "fivecal_version": fivecal.__version__, "machine": {**machine_geometry, "calibration_targets": targets},
+            "fivecal_version": FIVECAL_VERSION, "machine": {**machine_geometry, "calibration_targets": targets},
             "cameras": cams, "plates": src["plates"], "views": src["views"], "calibration_targets": targets}
 
 
@@ -238,7 +230,7 @@ def write_campaign_truth(folder: Path, campaign_id: str, seed: int, size: str, e
     write_metadata(folder, campaign_metadata(machine, campaign_id, size))
     write_manifest(folder, manifest_from_plan(poses))
     images, dots = truth_tables(poses, truth, machine)
-    provenance = {"fivecal_version": fivecal.__version__, "seed": seed, "size": size}
+    provenance = {"fivecal_version": FIVECAL_VERSION, "seed": seed, "size": size}
     atomic_write_parquet(folder / TRUTH_DIR / "images.parquet", images, provenance)
     atomic_write_parquet(folder / TRUTH_DIR / "dots.parquet", dots, provenance)
     truth_doc = {"seed": seed, "size": size, "plan": asdict(plan), "effects": list(effects),

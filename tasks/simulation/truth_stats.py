@@ -12,9 +12,10 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 
+from tasks.core.units import ARCSEC, UM
 from tasks.machine.context import PoseContext
 from tasks.machine.description import AXIS_ORDER, Machine
-from tasks.machine.error_model import ARCSEC, UM, ErrorModel
+from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward, tip_pose_error
 
 # The seed's published figures (§5.2): before and after compensation.

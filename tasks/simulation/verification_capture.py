@@ -19,7 +19,8 @@ import pandas as pd
 
 from tasks.analysis.verification import modelled_errors
 from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES, capture_rows
-from tasks.campaign.folder import COMMAND_COLUMNS, TRUTH_DIR, staged_folder, write_manifest, write_metadata
+from tasks.campaign.folder import COMMAND_COLUMNS, TRUTH_DIR, write_manifest, write_metadata
+from tasks.core.atomic_io import staged_folder
 from tasks.machine.description import AXIS_ORDER, load_machine
 from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign, temperature_at
 from tasks.simulation.simulate import (

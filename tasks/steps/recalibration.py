@@ -10,9 +10,9 @@ from typing import Any
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-import fivecal
 from tasks.analysis.drift import DriftTolerance, drift_table, verdict, verification_summary
 from tasks.campaign.watch import CampaignEntry, Skipped, scan_watch_dir
+from tasks.core.version import FIVECAL_VERSION
 from tasks.lake.store import read_table, write_partition
 from tasks.report.drift_report import DriftReportData, write_drift_report
 from tasks.vision.pipeline import content_key
@@ -36,7 +36,7 @@ def drift_report_task(results_root: str | None, out_dir: str, tolerance: DriftTo
     drift = drift_table(pige, pdge, images, tolerance, reference)
     summary = verification_summary(read_table("verification", root), read_table("compensation", root))
     words = verdict(drift, summary, tolerance)
-    provenance = {"fivecal_version": fivecal.__version__, "drift_code": DRIFT_CODE_VERSION, "run": run,
+    provenance = {"fivecal_version": FIVECAL_VERSION, "drift_code": DRIFT_CODE_VERSION, "run": run,
                   "reference_campaign_id": words.reference_campaign_id, "tolerance": tolerance.to_dict(),
                   "inputs_sha256": content_key(pige, pdge, images[["campaign_id", "timestamp"]] if len(images) else [])}
     tables = {c: str(write_partition("drift", c, g, provenance, root))

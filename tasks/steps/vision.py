@@ -30,9 +30,9 @@ from prefect.context import TaskRunContext
 from threadpoolctl import threadpool_limits
 
 from tasks.lake.store import read_table
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_model import CameraModel
 from tasks.vision.pipeline import PRIOR_COLUMNS, calibrate_cameras, content_key, detect_images, plate_poses
 
 _numeric_lock = threading.Lock()

@@ -5,7 +5,7 @@ reprojection error of every trial and their mean (Table 3), noting that the five
 parameters stay below 0.4 in magnitude. This module does the same with OpenCV:
 
 * :func:`calibrate_trial`: one trial, ``cv2.calibrateCameraExtended`` on the 5-parameter
-  Brown–Conrady model (k1, k2, p1, p2, k3; OpenCV conventions, see :mod:`tasks.vision.camera_model`),
+  Brown–Conrady model (k1, k2, p1, p2, k3; OpenCV conventions, see :mod:`tasks.machine.camera_model`),
   started from the nominal intrinsics (``CALIB_USE_INTRINSIC_GUESS``).
 * :func:`calibrate_camera`: all trials of a camera → one row per trial, the Table 3 summary,
   and a best estimate (a joint fit on every valid image of the camera; see there why).
@@ -32,9 +32,9 @@ import numpy as np
 import pandas as pd
 
 from tasks.core import se3
+from tasks.machine.camera_model import CameraModel, distort_normalised
 from tasks.machine.description import CALIBRATION_STAGE
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_model import CameraModel, distort_normalised
 
 INTRINSIC_NAMES = ("fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")
 STD_NAMES = tuple(f"std_{n}" for n in INTRINSIC_NAMES)
@@ -397,7 +397,7 @@ def compare_to_truth(result, true_camera: CameraModel, points_px: np.ndarray | N
 
 
 def _rays(uv: np.ndarray, true_camera: CameraModel) -> np.ndarray:
-    from tasks.simulation.render import undistort_pixels  # exact Newton inverse of the 5-parameter model
+    from tasks.machine.distortion import undistort_pixels  # exact Newton inverse of the 5-parameter model
 
     return undistort_pixels(uv[np.all(np.isfinite(uv), axis=1)], true_camera)
 
@@ -439,75 +439,3 @@ def _compare(est: np.ndarray, true_camera: CameraModel, seen: np.ndarray | None 
             vals = [np.nan] * 4
         out.update(zip(keys, (float(v) for v in vals), strict=True))
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# Measurement on the virtual machine: python -m tasks.vision.camera_calibration [--sigma 0.03] [--seed 0]
-# --------------------------------------------------------------------------------------------
-
-
-def simulated_trials(camera: str, sigma_px: float, seed: int, plan=None, machine=None) -> dict[str, tuple]:
-    """Calibration views of ``camera`` on the virtual machine at pose level (no images): the
-    campaign plan's fixture poses, true projected dot centres, Gaussian pixel noise σ (seeded).
-    For tests and the measurement in docs/camera-calibration.md."""
-    from tasks.machine.description import CALIBRATION_STAGE, load_machine
-    from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
-    from tasks.simulation.render import true_dot_centres
-
-    machine = machine or load_machine("prototype")
-    poses, fixture = plan_campaign(machine, plan or CampaignPlan(), seed)
-    cam = machine.cameras[camera]
-    plate = machine.plates[machine.plate_seen(camera, CALIBRATION_STAGE)]
-    rng = np.random.default_rng([seed, 101, list(machine.cameras).index(camera)])
-    obj = plate.dot_centres_mm()
-    out: dict[str, tuple] = {}
-    for i in np.flatnonzero((poses["camera"] == camera) & (poses["stage"] == CALIBRATION_STAGE)):
-        uv = true_dot_centres(cam, plate, fixture[int(i)]) + rng.normal(0.0, sigma_px, (len(obj), 2))
-        views = out.setdefault(str(poses["group"].iloc[i]), ([], [], []))
-        views[0].append(obj)
-        views[1].append(uv)
-        views[2].append(str(poses["image_id"].iloc[i]))
-    return out
-
-
-def _main(argv: Sequence[str] | None = None) -> None:
-    import argparse
-    import time
-
-    from tasks.machine.description import load_machine
-
-    p = argparse.ArgumentParser(description="Self-calibration of both cameras on the virtual machine "
-                                            "(true dot centres + Gaussian pixel noise): Table 3 and errors.")
-    p.add_argument("--sigma", type=float, default=0.03, help="pixel noise per coordinate (px)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fix-k3", action="store_true")
-    a = p.parse_args(argv)
-    machine = load_machine("prototype")
-    pd.set_option("display.width", 200)
-    cals = []
-    for name, true_cam in machine.cameras.items():
-        t0 = time.perf_counter()
-        spec = {"width_px": true_cam.width_px, "height_px": true_cam.height_px,
-                "pixel_size_mm": true_cam.pixel_size_mm, "focal_length_mm": true_cam.focal_length_mm}
-        trials = simulated_trials(name, a.sigma, a.seed, machine=machine)
-        cal = calibrate_camera(trials, nominal_camera(spec, name), fix_k3=a.fix_k3)
-        cals.append(cal)
-        seen = np.concatenate([uv for views in trials.values() for uv in views[1]])
-        errs = compare_to_truth(cal.trials, true_cam, seen)
-        print(f"== {name}: {time.perf_counter() - t0:.1f} s")
-        print(cal.summary.to_string(float_format=lambda x: f"{x:.5g}"))
-        print("per-trial errors against the truth (max |.| over trials):",
-              {k: round(float(errs[k].abs().max()), 4) for k in
-               ("focal_error_pct", "pp_error_px", "distortion_max_px", "distortion_max_px_seen")})
-        print("  focal error % per trial:", np.round(errs["focal_error_pct"].to_numpy(), 4).tolist())
-        j = cal.joint
-        print(f"joint ({j.n_images} images): rms {j.rms_px:.4f} px, sigma {j.sigma_px:.4f} px, "
-              f"std fx {j.std_intrinsics[0]:.3f} px, std cx/cy {j.std_intrinsics[2]:.3f}/{j.std_intrinsics[3]:.3f} px")
-        best = compare_to_truth(cal, true_cam, seen)
-        print("best estimate vs truth:", {k: round(float(v), 4) for k, v in best.items()})
-    print("== Table 3 (reprojection RMS, px)")
-    print(table3(cals).to_string(float_format=lambda x: f"{x:.4f}"))
-
-
-if __name__ == "__main__":
-    _main()

@@ -56,12 +56,13 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from tasks.core.units import RAD_TO_ARCSEC
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE
 from tasks.machine.kinematics import position_orientation_error
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_model import CameraModel
 from tasks.vision.pipeline import campaign_plates, plate_names, plates_by_camera
-from tasks.vision.poses import RAD_TO_ARCSEC, estimate_pose
+from tasks.vision.poses import estimate_pose
 
 CODE_VERSION = "detector-comparison-1"
 TABLE_NAME = "detector_comparison"
@@ -514,7 +515,7 @@ def run_comparison(campaign: str | Path, results_root: str | Path | None = None,
     the intrinsics used and the host (CPU count, OpenCV threads) — runtimes depend on it.
     Returns (summary table, path of the written Parquet file).
     """
-    import fivecal
+    from tasks.core.version import FIVECAL_VERSION
     from tasks.lake.store import read_table, write_partition
 
     folder = Path(campaign)
@@ -535,7 +536,7 @@ def run_comparison(campaign: str | Path, results_root: str | Path | None = None,
         sources.get(c, "") if c != ALL_CAMERAS else "; ".join(f"{n}: {sources[n]}" for n in sorted(sources))
         for c in summary["camera"]]
     provenance = {
-        "fivecal_version": fivecal.__version__, "input_sha256": _input_hash(folder, manifest, ids),
+        "fivecal_version": FIVECAL_VERSION, "input_sha256": _input_hash(folder, manifest, ids),
         "parameters": {"code_version": CODE_VERSION, "detectors": list(detectors), "prior": prior,
                        "repeats": repeats, "max_images_per_camera": max_images_per_camera,
                        "calibration_images_per_camera": calibration_images_per_camera, "image_ids": ids},

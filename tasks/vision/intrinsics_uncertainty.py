@@ -34,9 +34,9 @@ import cv2
 import numpy as np
 import pandas as pd
 
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate
 from tasks.vision.camera_calibration import trial_views
-from tasks.vision.camera_model import CameraModel
 from tasks.vision.poses import estimate_pose, pose_jacobian
 
 INTRINSIC_PARAMETERS = ("f_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")

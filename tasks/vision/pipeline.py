@@ -31,11 +31,11 @@ import numpy as np
 import pandas as pd
 
 from tasks.campaign.ingest import MAX_FAULT_FRACTION, CampaignError
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE, Machine, machine_from_dict, plate_seen
 from tasks.machine.kinematics import forward
 from tasks.machine.plate import DotPlate
 from tasks.vision.camera_calibration import calibrate_camera, nominal_camera, trial_views
-from tasks.vision.camera_model import CameraModel
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.grid_order import rotation_deg
 from tasks.vision.detection.perspective import project

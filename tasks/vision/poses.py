@@ -46,10 +46,10 @@ import numpy as np
 import pandas as pd
 
 from tasks.core import se3
+from tasks.core.units import RAD_TO_ARCSEC
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_model import CameraModel
 
-RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
 MIN_POINTS = 6
 """Fewest valid (finite) points for a pose: IPPE needs 4, and 2K − 6 > 0 degrees of freedom are
 needed to estimate σ from the residuals; 6 leaves 6."""

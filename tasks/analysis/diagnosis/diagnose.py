@@ -31,7 +31,7 @@ After accepting, the residual loses what the effect explains and the remaining c
 re-scored (periods re-scanned) against it, up to ``max_effects`` times. A candidate whose signature the
 PDGE splines and the constant parameters already reproduce (visible fraction < 0.1) is reported as
 absorbed; one no camera sees, as unseen; for both, and for groups, the table says which poses would
-identify it (:mod:`tasks.analysis.diagnosis.suggestions`).
+identify it (:mod:`tasks.identification.identifying_poses`).
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ from tasks.analysis.diagnosis.crossval import FOLDS, cv_improvement_p, fold_rows
 from tasks.analysis.diagnosis.linearisation import Linearisation, linearise
 from tasks.analysis.diagnosis.profile_noise import gls_transform, profile_noise
 from tasks.analysis.diagnosis.score import ABSORBED, Scorer
-from tasks.analysis.diagnosis.suggestions import identifying_poses
 from tasks.analysis.diagnosis.verdict import explained_sentence, follows, p_text, residual_direction
+from tasks.identification.identifying_poses import identifying_poses
 from tasks.identification.measurements import Measurements
 from tasks.identification.pige_identification import IDENTIFICATION_CAMERA, CalibrationResult
 from tasks.machine.description import Machine

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_model import CameraModel
 
 
 def rot_x(a_rad: float) -> np.ndarray:

@@ -18,6 +18,7 @@ from fivecal.options import (
     ResultsOption,
     VerificationRepeatsOption,
     check_orientation,
+    on_valid_campaign,
 )
 
 app = GuardedTyper(add_completion=False, no_args_is_help=True,
@@ -85,20 +86,6 @@ def simulate(
     typer.echo(f"campaign written to {path}")
 
 
-def _on_valid_campaign(campaign: Path, run):
-    """Run ``run()`` on a campaign whose folder, metadata and manifest pass the campaign-level
-    checks (tasks.campaign.ingest.read_checked_manifest); otherwise print the error (it names the file) and
-    exit 2, before any Prefect server starts or anything is written."""
-    from tasks.campaign.ingest import CampaignError, read_checked_manifest
-
-    try:
-        read_checked_manifest(campaign)
-        return run()
-    except CampaignError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(2) from None
-
-
 @app.command()
 def ingest(
     campaign: Annotated[Path, typer.Argument(help="campaign folder")],
@@ -116,7 +103,7 @@ def ingest(
 
         return run_ingest(campaign, results, dask_address, dask_workers)
 
-    summary = _on_valid_campaign(campaign, run)
+    summary = on_valid_campaign(campaign, run)
     typer.echo(format_summary(summary))
     typer.echo(f"images table: {summary['table']}")
 
@@ -137,7 +124,7 @@ def measure(
 
         return run_measure(campaign, results, detector, dask_address, dask_workers)
 
-    summary = _on_valid_campaign(campaign, run)
+    summary = on_valid_campaign(campaign, run)
     typer.echo(f"campaign {summary['campaign_id']}: {summary['n_images']} images, {summary['n_ingested_ok']} "
                f"ingested ok, {summary['n_detected']} grids found, {summary['n_poses']} poses "
                f"(cached steps: {summary['cached']})")
@@ -293,7 +280,7 @@ def _run_calibrate(campaign: Path, results: Path | None, detector: str, reports:
                                   dask_address=dask_address, dask_workers=dask_workers, orientation=orientation,
                                   verification_repeats=verification_repeats)
 
-    return _on_valid_campaign(campaign, run)
+    return on_valid_campaign(campaign, run)
 
 
 @app.command()

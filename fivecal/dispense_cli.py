@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from fivecal.options import ResultsOption
+from fivecal.options import ResultsOption, on_valid_campaign
 
 ConfigOption = Annotated[Path | None, typer.Option(help="TOML file overriding the inspection thresholds "
                                                         "([inspection] section; defaults: "
@@ -26,7 +26,6 @@ def dispense_test(
 ) -> None:
     """Dispense dots in ring targets (nominal, compensated), inspect them (§4.3), fit the tip's offset,
     fold it into the compensation and check it on a fresh workpiece."""
-    from fivecal.cli import _on_valid_campaign
     from tasks.dispensing.inspection import load_config
     from tasks.machine.effects import load_effect_modules
 
@@ -47,7 +46,7 @@ def dispense_test(
                     effect_modules=list(effect_module or []))
 
     try:
-        summary = _on_valid_campaign(campaign, run)
+        summary = on_valid_campaign(campaign, run)
     except ValueError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from fivecal.options import ResultsOption
+from fivecal.options import ResultsOption, on_valid_campaign
 
 
 def dispense_job(
@@ -23,7 +23,6 @@ def dispense_job(
 ) -> None:
     """Locate the dispensing areas on every tray, map them to the machine, plan beads and the tour, write the
     dispensing program; on simulated trays the virtual machine dispenses and the beads are inspected."""
-    from fivecal.cli import _on_valid_campaign
     from tasks.dispense_job.tray_job import PHASES
 
     bad = [p for p in phase or [] if p not in PHASES]
@@ -37,7 +36,7 @@ def dispense_job(
                     None, tuple(phase) if phase else None)
 
     try:
-        summary = _on_valid_campaign(campaign, run)
+        summary = on_valid_campaign(campaign, run)
     except ValueError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None

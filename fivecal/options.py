@@ -34,3 +34,17 @@ def check_orientation(orientation: str) -> str:
         return check_objective(orientation)
     except ValueError as e:
         raise typer.BadParameter(str(e), param_hint="--orientation") from None
+
+
+def on_valid_campaign(campaign: Path, run):
+    """Run ``run()`` on a campaign whose folder, metadata and manifest pass the campaign-level
+    checks (tasks.campaign.ingest.read_checked_manifest); otherwise print the error (it names the file) and
+    exit 2, before any Prefect server starts or anything is written."""
+    from tasks.campaign.ingest import CampaignError, read_checked_manifest
+
+    try:
+        read_checked_manifest(campaign)
+        return run()
+    except CampaignError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None

@@ -40,9 +40,9 @@ import pandas as pd
 from scipy import stats
 
 from tasks.analysis.residuals import (
-    _TO_FILE_UNITS,
     CAMERA_COMPONENTS,
     CATEGORICAL_VARIABLES,
+    TO_FILE_UNITS,
     TREND_VARIABLES,
     chain_constant_part,
 )
@@ -97,7 +97,7 @@ def shared_deviations(machine: Machine, model: ErrorModel, propagated, measureme
             rows = cams == camera
             e[rows] -= chain_constant_part(m.T[rows], e[rows], W[rows])
         cam = np.concatenate([np.einsum("nij,nj->ni", R, e[:, :3]), np.einsum("nij,nj->ni", R, e[:, 3:])], axis=1)
-        return cam * _TO_FILE_UNITS
+        return cam * TO_FILE_UNITS
 
     ref = residual(model)
     out = [residual(mod) - ref for mod in propagated.camera_models]

@@ -75,7 +75,7 @@ POSE_RESIDUAL_COLUMNS = ("image_id", "camera", "stage", "group", "repeat", "used
                          *COMPONENTS, "position_um", "orientation_arcsec", *CAMERA_COMPONENTS, *WHITE_COMPONENTS,
                          "white_norm")
 DOT_RESIDUAL_COLUMNS = ("image_id", "camera", "stage", "row", "col", "u_px", "v_px", "du_px", "dv_px")
-_TO_FILE_UNITS = np.array([1 / UM] * 3 + [1 / ARCSEC] * 3)  # mm, rad -> µm, arcsec
+TO_FILE_UNITS = np.array([1 / UM] * 3 + [1 / ARCSEC] * 3)  # mm, rad -> µm, arcsec
 
 
 def image_positions(dots: pd.DataFrame | None) -> pd.DataFrame:
@@ -144,11 +144,11 @@ def pose_residual_table(machine: Machine, model: ErrorModel, meas: Measurements,
     out["u_mean_px"] = pos["u_mean_px"].to_numpy(dtype=float)
     out["v_mean_px"] = pos["v_mean_px"].to_numpy(dtype=float)
     out["n_dots"] = pos["n_dots"].fillna(0).to_numpy(dtype=np.int64)
-    phys = e * _TO_FILE_UNITS
+    phys = e * TO_FILE_UNITS
     out[list(COMPONENTS)] = phys
     out["position_um"] = np.linalg.norm(phys[:, :3], axis=1)
     out["orientation_arcsec"] = np.linalg.norm(phys[:, 3:], axis=1)
-    out[list(CAMERA_COMPONENTS)] = e_cam * _TO_FILE_UNITS
+    out[list(CAMERA_COMPONENTS)] = e_cam * TO_FILE_UNITS
     out[list(WHITE_COMPONENTS)] = white
     out["white_norm"] = np.linalg.norm(white, axis=1)
     return out[list(POSE_RESIDUAL_COLUMNS)]

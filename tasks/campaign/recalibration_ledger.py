@@ -37,7 +37,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from tasks.core.atomic_io import atomic_write_text
-from tasks.lake.store import _check_name, results_root
+from tasks.lake.store import check_name, results_root
 
 LEDGER_DIR = ".recalibration"
 
@@ -54,7 +54,7 @@ class Ledger:
         return cls(results_root(root) / LEDGER_DIR)
 
     def _done_path(self, campaign_id: str, input_sha256: str) -> Path:
-        _check_name("campaign_id", campaign_id)
+        check_name("campaign_id", campaign_id)
         if len(input_sha256) != 64 or any(c not in "0123456789abcdef" for c in input_sha256):
             raise ValueError(f"input_sha256 must be 64 lower-case hex digits, not {input_sha256!r}")
         return self.folder / "done" / campaign_id / f"{input_sha256}.json"
@@ -86,7 +86,7 @@ class Ledger:
     def claim(self, campaign_id: str) -> Iterator[bool]:
         """Hold the campaign's lock for the ``with`` block: yields True when this caller holds it,
         False when another run does (then do nothing). Never blocks."""
-        _check_name("campaign_id", campaign_id)
+        check_name("campaign_id", campaign_id)
         path = self.folder / "locks" / f"{campaign_id}.lock"
         path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)

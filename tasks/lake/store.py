@@ -48,15 +48,12 @@ Plain DuckDB works as well::
 
 from __future__ import annotations
 
-import ctypes
-import errno
 import hashlib
 import json
 import os
 import re
 import shutil
 import socket
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -66,7 +63,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from tasks.core.atomic_io import atomic_write_parquet, current_umask, fsync_path
+from tasks.core.atomic_io import atomic_write_parquet, current_umask, fsync_path, swap_in_folder
 from tasks.lake import schema as lake_schema
 
 DEFAULT_RESULTS_DIR = Path("data/results")
@@ -93,8 +90,8 @@ def results_root(root: str | Path | None = None) -> Path:
 
 def partition_path(table_name: str, campaign_id: str, root: str | Path | None = None) -> Path:
     """``<root>/<table>/campaign_id=<id>`` (validated names: letters, digits, ``._-``)."""
-    _check_name("table name", table_name)
-    _check_name("campaign_id", campaign_id)
+    check_name("table name", table_name)
+    check_name("campaign_id", campaign_id)
     return results_root(root) / table_name / f"{PARTITION_COLUMN}={campaign_id}"
 
 
@@ -131,7 +128,7 @@ def write_partitions(tables: dict[str, pd.DataFrame], campaign_id: str, provenan
             staged.append(_stage(table_name, campaign_id, df, provenance, root, staging_root))
         for staging, dest in staged:
             dest.parent.mkdir(parents=True, exist_ok=True)
-            _swap_in(staging, dest)
+            swap_in_folder(staging, dest)
             fsync_path(dest.parent)  # the swap itself
         fsync_path(staging_root)
     finally:
@@ -190,46 +187,6 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _swap_in(new: Path, dest: Path) -> None:
-    """Make folder ``new`` appear at ``dest``. Afterwards ``new`` holds the old partition or is gone."""
-    if not dest.exists():
-        try:
-            os.rename(new, dest)
-            return
-        except OSError as e:
-            if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
-                raise  # otherwise another writer created dest meanwhile: swap below
-    if _exchange(new, dest):
-        return
-    old = new.with_name(new.name + ".old")
-    os.rename(dest, old)
-    try:
-        os.rename(new, dest)
-    except BaseException:
-        os.rename(old, dest)
-        raise
-    os.rename(old, new)
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Atomically exchange two folders (Linux renameat2 RENAME_EXCHANGE); False where unsupported."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
-    except (OSError, AttributeError):
-        return False
-    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
-    renameat2.restype = ctypes.c_int
-    at_fdcwd, rename_exchange = -100, 2
-    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
-        return True
-    err = ctypes.get_errno()
-    if err in (errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):
-        return False
-    raise OSError(err, os.strerror(err), str(b))
-
-
 def read_table(table_name: str, root: str | Path | None = None, campaign_id: str | None = None) -> pd.DataFrame:
     """Every partition of ``table_name`` (or only ``campaign_id``) through DuckDB, as pandas.
 
@@ -237,10 +194,10 @@ def read_table(table_name: str, root: str | Path | None = None, campaign_id: str
     order (``union_by_name``: a column missing from older partitions reads as null). Integers come
     back as pandas nullable integers (Int64, ...), timestamps tz-aware in UTC. An absent table gives an empty DataFrame.
     """
-    _check_name("table name", table_name)
+    check_name("table name", table_name)
     table_dir = results_root(root) / table_name
     if campaign_id is not None:
-        _check_name("campaign_id", campaign_id)
+        check_name("campaign_id", campaign_id)
     if not any(table_dir.glob(f"{PARTITION_COLUMN}=*/*.parquet")):
         return pd.DataFrame()
     sql = scan_sql("$pattern")
@@ -279,6 +236,7 @@ def read_provenance(table_name: str, campaign_id: str, root: str | Path | None =
     return json.loads(meta.get(b"fivecal", b"{}"))
 
 
-def _check_name(what: str, name: str) -> None:
+def check_name(what: str, name: str) -> None:
+    """Raise ValueError unless ``name`` is a safe lake name (a table or a campaign_id)."""
     if not isinstance(name, str) or not _NAME.match(name):
         raise ValueError(f"{what} {name!r} must be 1-128 letters, digits, '.', '_' or '-', not starting with '.'")

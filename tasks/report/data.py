@@ -19,8 +19,11 @@ from __future__ import annotations
 
 import json
 import platform
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import pandas as pd
 
 from tasks.campaign.folder import MANIFEST_FILE, METADATA_FILE
 from tasks.core.atomic_io import atomic_write_parquet, atomic_write_text
@@ -28,7 +31,29 @@ from tasks.core.version import FIVECAL_VERSION, code_fingerprint
 from tasks.lake import schema as lake_schema
 
 if TYPE_CHECKING:
-    from tasks.report.render import ReportData
+    from matplotlib.figure import Figure
+
+
+@dataclass
+class ReportData:
+    """Everything one report shows. Frames as in docs/report.md (units in the column names)."""
+
+    campaign_id: str
+    run: str                      # run folder name, e.g. "20261121T101500-ab12cd"
+    pdge: pd.DataFrame
+    pige: pd.DataFrame
+    verification: pd.DataFrame
+    camera_calibration: pd.DataFrame | None = None
+    detector_comparison: pd.DataFrame | None = None
+    formulations: pd.DataFrame | None = None
+    identifiability: list[str] = field(default_factory=list)
+    extra_sections: list[tuple[str, str]] = field(default_factory=list)
+    extra_figures: list[tuple[str, Figure]] = field(default_factory=list)
+    provenance: dict = field(default_factory=dict)
+    simulated: bool = False
+    compensation: pd.DataFrame | None = None  # only written to data/ (tasks/report/data.py), not shown
+    images: pd.DataFrame | None = None        # the images table: the input hashes in data/inputs.parquet
+
 
 DATA_DIR = "data"
 PARAMETERS_FILE = "parameters.json"

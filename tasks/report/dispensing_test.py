@@ -1,4 +1,4 @@
-"""The dispensing test's report: ``<reports>/<campaign_id>/<run>/dispensing/`` (index.md, index.html,
+"""The dispensing test's report: ``<reports>/<campaign_id>/<run>/dispensing/`` (report.md, index.html,
 figures/). Science only, no Prefect."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from tasks.report.figures import new_figure, save_png
-from tasks.report.render import markdown_to_html
+from tasks.report.publish import write_markdown_and_html
 
 SEED_DX_MM, SEED_DY_MM = 0.04, -0.06  # §5.3: mean δx, δy of the seed's 50 dots
 PHASE_ORDER = ("nominal", "compensated", "check")
@@ -112,13 +112,11 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
 
 def write_dispensing_report(out_dir: Path, rows: pd.DataFrame, verification: pd.DataFrame, fit, summary: dict,
                             simulated: bool, config: dict | None = None) -> Path:
-    """Write index.md, index.html and figures/ into ``out_dir``; returns index.html's path."""
+    """Write report.md, index.html and figures/ into ``out_dir``; returns index.html's path."""
     out_dir = Path(out_dir)
     (out_dir / "figures").mkdir(parents=True, exist_ok=True)
-    images = {}
     for stem, fig in (("offsets", offsets_figure(rows)), ("features", features_figure(rows, config or {}))):
-        path = save_png(fig, out_dir / "figures" / f"{stem}.png")
-        images[f"figures/{stem}.png"] = path.read_bytes()
+        save_png(fig, out_dir / "figures" / f"{stem}.png")
     tip = "\n".join(f"| {axis} | {v:+.2f} | {u:.2f} |" for axis, v, u in
                     zip("xyz", fit.offset_um, fit.uncertainty_um, strict=True))
     md = [f"# Dispensing test: {summary['campaign_id']}", "",
@@ -146,8 +144,4 @@ def write_dispensing_report(out_dir: Path, rows: pd.DataFrame, verification: pd.
                    f"- after the tip fit: {', '.join(f'{v:+.2f}' for v in t['constant_after_tip_um'])} "
                    f"(norm {np.linalg.norm(t['constant_after_tip_um']):.2f})", ""]
     md += ["## Before / after (validation poses)", "", _table(before_after_table(verification)), ""]
-    text = "\n".join(md)
-    (out_dir / "index.md").write_text(text)
-    html_path = out_dir / "index.html"
-    html_path.write_text(markdown_to_html(text, images, f"Dispensing test {summary['campaign_id']}"))
-    return html_path
+    return write_markdown_and_html(out_dir, "\n".join(md), f"Dispensing test {summary['campaign_id']}")["html"]

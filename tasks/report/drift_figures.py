@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 
 from tasks.analysis.drift import PDGE_COMPONENTS, PDGE_STATISTICS, DriftTolerance
 from tasks.core.units import UNIT_LABEL
-from tasks.report.figures import _no_data, new_figure
+from tasks.report.figures import new_figure, mark_no_data
 
 
 def campaign_ranks(drift: pd.DataFrame) -> dict[str, int]:
@@ -32,7 +32,7 @@ def _trend_panel(ax, rows: pd.DataFrame, ranks: dict[str, int], tolerance: Drift
     ax.grid(alpha=0.3)
     if rows.empty:
         if band:
-            _no_data(ax, "not identified")
+            mark_no_data(ax, "not identified")
         return
     x = rows["campaign_id"].map(ranks).to_numpy(dtype=float)
     y = rows["value"].to_numpy(dtype=float)
@@ -102,7 +102,7 @@ def verification_trend(summary: pd.DataFrame, ranks: dict[str, int], tolerance: 
              tolerance.after_orientation_arcsec)),
             strict=True):
         if s.empty:
-            _no_data(ax)
+            mark_no_data(ax)
         for (phase, source), g in s.groupby(["phase", "source"]):
             g = g.assign(rank=g["campaign_id"].map(ranks)).sort_values("rank")
             ax.errorbar(g["rank"], g[col], yerr=np.nan_to_num(g[sem].to_numpy(dtype=float)), capsize=2, ms=4,

@@ -14,14 +14,12 @@ Science only (no Prefect). SYNOPSIS::
 Sections: the verdict, the campaigns in capture order, how a quantity is flagged, the flagged
 quantities, PIGE trends (figure and table), PDGE trends per axis, the verification error after
 compensation, provenance. The Markdown is the source; the HTML comes from
-:func:`tasks.report.render.markdown_to_html` with every figure embedded, so index.html stands
+:func:`tasks.report.publish.markdown_to_html` with every figure embedded, so index.html stands
 alone. Tables show the last :data:`TABLE_CAMPAIGNS` campaigns; the figures show all of them.
 """
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,10 +27,10 @@ import pandas as pd
 
 from tasks.analysis.drift import DriftTolerance, Verdict
 from tasks.core.units import UNIT_LABEL
-from tasks.lake.store import _swap_in
 from tasks.report import drift_figures
 from tasks.report.figures import save_png
-from tasks.report.render import markdown_to_html, provenance_section
+from tasks.report.publish import publish_report
+from tasks.report.render import provenance_section
 from tasks.report.tables import fmt, fmt_pm, fmt_unit, md_table
 
 TABLE_CAMPAIGNS = 8
@@ -206,24 +204,7 @@ def build_markdown(data: DriftReportData, figures: Path) -> str:
 def write_drift_report(out_dir: Path, data: DriftReportData) -> dict[str, Path]:
     """Write ``out_dir/report.md``, a self-contained ``out_dir/index.html`` and ``out_dir/figures/*.png``.
 
-    Atomic: built in a sibling temporary folder and swapped in by rename, so ``out_dir`` is absent,
-    the previous report or the whole new one. Returns {"markdown", "html", "figures"} paths.
+    Atomic (:func:`tasks.report.publish.publish_report`): ``out_dir`` is absent, the previous report
+    or the whole new one. Returns {"markdown", "html", "figures"} paths.
     """
-    out_dir = Path(out_dir).absolute()
-    if out_dir.exists() and not (out_dir / "report.md").is_file():
-        raise FileExistsError(f"{out_dir} exists and is not a drift report: refusing to replace it")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-"))
-    try:
-        (staging / "figures").mkdir()
-        markdown = build_markdown(data, staging / "figures")
-        (staging / "report.md").write_text(markdown, encoding="utf-8")
-        images = {f"figures/{p.name}": p.read_bytes() for p in sorted((staging / "figures").glob("*.png"))}
-        html = markdown_to_html(markdown, images, f"fivecal drift report — {data.run}")
-        (staging / "index.html").write_text(html, encoding="utf-8")
-        staging.chmod(0o755)
-        _swap_in(staging, out_dir)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    return {"markdown": out_dir / "report.md", "html": out_dir / "index.html", "figures": out_dir / "figures"}
-
+    return publish_report(out_dir, f"fivecal drift report — {data.run}", lambda figures: build_markdown(data, figures))

@@ -47,7 +47,8 @@ def save_png(fig: Figure, path: Path, dpi: int = DPI) -> Path:
     return path
 
 
-def _no_data(ax, text: str = "no data") -> None:
+def mark_no_data(ax, text: str = "no data") -> None:
+    """Write ``text`` in grey at the centre of an empty panel ``ax``."""
     ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes, color="grey")
 
 
@@ -105,7 +106,7 @@ def _histogram_with_normal(ax, values: np.ndarray, unit: str, seed_mean: float) 
     v = values[np.isfinite(values)]
     label = UNIT_LABEL[unit]
     if v.size == 0:
-        _no_data(ax)
+        mark_no_data(ax)
         return
     counts, edges, _ = ax.hist(v, bins=min(15, max(5, v.size // 3)), color="C0", alpha=0.6, label="measured")
     mu, sigma = stats.norm.fit(v)
@@ -139,7 +140,7 @@ def fig11_histograms(pdge: pd.DataFrame) -> Figure:
         row[1].set_xlabel(f"{axis} axis: rotational PDGE ‖(εx, εy, εz)‖ (arcsec)")
     if not axes:
         for ax in grid[0]:
-            _no_data(ax)
+            mark_no_data(ax)
     fig.suptitle("Fig. 11 (seed): distributions of the PDGE magnitudes with fitted normal curves")
     return fig
 
@@ -159,7 +160,7 @@ def fig12_single_direction(verification: pd.DataFrame) -> Figure:
     panels = fig.subplots(2, 1, sharex=True)
     for ax, cols, unit in ((panels[0], DIRECTIONS[:3], "um"), (panels[1], DIRECTIONS[3:], "arcsec")):
         if g.empty:
-            _no_data(ax)
+            mark_no_data(ax)
         for c, colour in zip(cols, COLOURS, strict=True):
             y = column(g, c)
             if g.empty or not y.notna().any():
@@ -195,7 +196,7 @@ def _phase_histogram(ax, values: pd.Series, col: str, phase: str, unit: str) -> 
     ax.set_xlabel(f"{quantity} error {phase} ({label})")
     ax.set_ylabel("poses")
     if v.size == 0:
-        _no_data(ax)
+        mark_no_data(ax)
         return
     counts, _, _ = ax.hist(v, bins=min(15, max(5, v.size // 3)), color="C0" if phase == "before" else "C2",
                            alpha=0.7)

@@ -16,13 +16,8 @@ every ``figures/<stem>.png`` image is embedded as a base64 data URI, so index.ht
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import re
-import shutil
-import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,7 +25,8 @@ import pandas as pd
 
 from tasks.report import figures as F
 from tasks.report import tables as T
-from tasks.report.data import write_report_data
+from tasks.report.data import ReportData, write_report_data
+from tasks.report.publish import publish_report
 from tasks.simulation.truth_stats import SEED_AFTER, SEED_BEFORE
 
 if TYPE_CHECKING:
@@ -44,27 +40,6 @@ VERIFICATION_REQUIRED = ("pose", "phase", "source", "position_um", "orientation_
 CAMERA_REQUIRED = ("camera", "trial", "status", "rms_px")
 FORMULATION_REQUIRED = ("formulation", "mean_single_run_ms", "total_300_ms", "position_error_norm_um",
                         "orientation_error_norm_arcsec")
-
-
-@dataclass
-class ReportData:
-    """Everything one report shows. Frames as in docs/report.md (units in the column names)."""
-
-    campaign_id: str
-    run: str                      # run folder name, e.g. "20261121T101500-ab12cd"
-    pdge: pd.DataFrame
-    pige: pd.DataFrame
-    verification: pd.DataFrame
-    camera_calibration: pd.DataFrame | None = None
-    detector_comparison: pd.DataFrame | None = None
-    formulations: pd.DataFrame | None = None
-    identifiability: list[str] = field(default_factory=list)
-    extra_sections: list[tuple[str, str]] = field(default_factory=list)
-    extra_figures: list[tuple[str, Figure]] = field(default_factory=list)
-    provenance: dict = field(default_factory=dict)
-    simulated: bool = False
-    compensation: pd.DataFrame | None = None  # only written to data/ (tasks/report/data.py), not shown
-    images: pd.DataFrame | None = None        # the images table: the input hashes in data/inputs.parquet
 
 
 # --------------------------------------------------------------------------------------------
@@ -341,87 +316,17 @@ def build_markdown(data: ReportData, figures_dir: Path) -> str:
     return "\n\n".join(s for s in sections if s) + "\n"
 
 
-# --------------------------------------------------------------------------------------------
-# HTML
-# --------------------------------------------------------------------------------------------
-
-CSS = """
-body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; max-width: 1200px; margin: 2em auto;
-       padding: 0 1em; color: #222; line-height: 1.45; }
-h1 { font-size: 1.6em; border-bottom: 2px solid #444; padding-bottom: .3em; }
-h2 { font-size: 1.3em; margin-top: 2em; border-bottom: 1px solid #ccc; }
-table { border-collapse: collapse; margin: 1em 0; font-size: .85em; display: block; overflow-x: auto; }
-th, td { border: 1px solid #ccc; padding: .25em .6em; }
-th { background: #f0f0f0; }
-tr:nth-child(even) td { background: #fafafa; }
-img { max-width: 100%; height: auto; display: block; margin: 1em 0 .2em; }
-pre { background: #f6f6f6; padding: 1em; overflow-x: auto; font-size: .85em; }
-code { font-family: ui-monospace, Menlo, Consolas, monospace; }
-"""
-
-
-def markdown_to_html(markdown: str, images: dict[str, bytes], title: str) -> str:
-    """A self-contained HTML page: the Markdown rendered by markdown-it-py (CommonMark + tables,
-    raw HTML escaped), each image whose src is a key of ``images`` (e.g. "figures/fig11.png")
-    replaced by a data:image/png;base64 URI, CSS inline."""
-    from markdown_it import MarkdownIt
-
-    md = MarkdownIt("commonmark", {"html": False}).enable("table")
-    tokens = md.parse(markdown)
-    for token in tokens:
-        for child in token.children or ():
-            src = child.attrGet("src") if child.type == "image" else None
-            if src in images:
-                child.attrSet("src", "data:image/png;base64," + base64.b64encode(images[src]).decode("ascii"))
-    body = md.renderer.render(tokens, md.options, {})
-    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n'
-            f'<meta name="viewport" content="width=device-width, initial-scale=1">\n'
-            f"<title>{html.escape(title)}</title>\n<style>{CSS}</style>\n</head>\n<body>\n{body}</body>\n</html>\n")
-
-
-# --------------------------------------------------------------------------------------------
-# Writing
-# --------------------------------------------------------------------------------------------
-
-
-def _check_target(out_dir: Path) -> None:
-    """Refuse to replace a file, or a non-empty folder that is not a previous report."""
-    if out_dir.is_symlink() or (out_dir.exists() and not out_dir.is_dir()):
-        raise FileExistsError(f"{out_dir} exists and is not a report folder")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "report.md").is_file():
-        raise FileExistsError(f"{out_dir} is a non-empty folder without report.md: refusing to replace it")
-
-
 def write_report(out_dir: Path, data: ReportData) -> dict[str, Path]:
     """Write ``out_dir/report.md``, ``out_dir/index.html`` (self-contained: PNGs embedded as
     base64 data URIs, CSS inline), ``out_dir/figures/*.png`` (150 dpi) and ``out_dir/data/``
     (the numbers and parameters, for ``fivecal reproduce``: tasks/report/data.py).
 
-    Atomic: the report is built in a sibling temporary folder, then swapped in by rename
-    (``tasks.lake.store``'s exchange), so ``out_dir`` is either absent/the old report or the
-    whole new one; a previous report there is replaced whole. Raises ValueError/TypeError for
-    malformed required inputs (before anything is written) and FileExistsError when ``out_dir``
-    is a file or a non-empty folder that is not a report.
-    Returns {"markdown": report.md, "html": index.html, "figures": the figures folder}.
+    Atomic (:func:`tasks.report.publish.publish_report`): ``out_dir`` is either absent/the old
+    report or the whole new one. Raises ValueError/TypeError for malformed required inputs (before
+    anything is written) and FileExistsError when ``out_dir`` is a file or a non-empty folder that is
+    not a report. Returns {"markdown": report.md, "html": index.html, "figures": the figures folder}.
     """
-    from tasks.lake.store import _swap_in
-
-    out_dir = Path(out_dir).absolute()
     check_inputs(data)
-    _check_target(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.tmp-"))
-    try:
-        write_report_data(staging, data)
-        figures_dir = staging / "figures"
-        figures_dir.mkdir()
-        markdown = build_markdown(data, figures_dir)
-        (staging / "report.md").write_text(markdown, encoding="utf-8")
-        images = {f"figures/{p.name}": p.read_bytes() for p in sorted(figures_dir.glob("*.png"))}
-        title = f"fivecal report — {data.campaign_id} / {data.run}"
-        (staging / "index.html").write_text(markdown_to_html(markdown, images, title), encoding="utf-8")
-        staging.chmod(0o755)  # mkdtemp creates 0700
-        _swap_in(staging, out_dir)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)  # the old report after a swap, or a failed build
-    return {"markdown": out_dir / "report.md", "html": out_dir / "index.html", "figures": out_dir / "figures"}
+    return publish_report(out_dir, f"fivecal report — {data.campaign_id} / {data.run}",
+                          lambda figures: build_markdown(data, figures),
+                          write_data=lambda staging: write_report_data(staging, data))

@@ -40,7 +40,7 @@ from tasks.analysis.residuals import (
 )
 from tasks.identification.measurements import COMMAND_COLUMNS
 from tasks.machine.camera_model import CameraModel
-from tasks.report.figures import _no_data, new_figure
+from tasks.report.figures import new_figure, mark_no_data
 from tasks.report.tables import fmt, fmt_g, md_table
 
 # variable -> (scale applied to x for display, axis label)
@@ -88,7 +88,7 @@ def _band_panel(ax, bins: pd.DataFrame, scale: float, categorical: bool) -> None
     """Binned means with their band; zero dashed; red title when the band leaves zero."""
     ax.axhline(0.0, color="k", lw=0.6, ls="--")
     if bins.empty:
-        _no_data(ax)
+        mark_no_data(ax)
         return
     x = bins["x"].to_numpy() * scale
     if categorical:
@@ -121,7 +121,7 @@ def trend_figure(residuals: pd.DataFrame, camera: str, variables: Sequence[str] 
     fig = _grid_figure(max(len(rows), 1), len(components))
     grid = fig.subplots(max(len(rows), 1), len(components), squeeze=False)
     if not rows:
-        _no_data(grid[0][0], "no variable varies")
+        mark_no_data(grid[0][0], "no variable varies")
     for r, var in enumerate(rows):
         scale, label = VARIABLE_LABEL.get(var, (1.0, var))
         categorical = var in CATEGORICAL_VARIABLES
@@ -153,7 +153,7 @@ def vector_field_figure(dot_residuals: pd.DataFrame, camera: str, image_size: tu
     fig = new_figure(8.0, 5.6)
     ax = fig.subplots()
     if d.empty:
-        _no_data(ax)
+        mark_no_data(ax)
         return fig
     u, v = d["u_px"].to_numpy(dtype=float), d["v_px"].to_numpy(dtype=float)
     w, h = image_size if image_size else (float(u.max()) + 1, float(v.max()) + 1)
@@ -212,7 +212,7 @@ def ladder_figure(ladder: pd.DataFrame) -> Figure:
     axes = fig.subplots(1, 3)
     if ladder is None or ladder.empty:
         for ax in axes:
-            _no_data(ax)
+            mark_no_data(ax)
         return fig
     ladder = ladder.sort_values("step")
     x = np.arange(len(ladder))

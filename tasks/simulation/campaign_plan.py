@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 
 from tasks.core import se3
+from tasks.machine.context import PoseContext, approach_directions
 from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE, Machine
 from tasks.machine.kinematics import forward
 
@@ -218,3 +219,11 @@ def plan_campaign(machine: Machine, plan: CampaignPlan, seed: int) -> tuple[pd.D
     n_fixture = len(fixture)
     fixture_map = dict(zip(range(n_fixture), fixture, strict=True))
     return df[["image_id", "camera", "stage", "group", "repeat", *AXIS_ORDER, "time_s", "temperature_c"]], fixture_map
+
+
+def plan_context(plan: pd.DataFrame) -> PoseContext:
+    """The context of every planned image (rows in capture order, AXIS_ORDER columns, time_s,
+    temperature_c): the approach direction of each axis from the moves of the plan (home before
+    the first row), the time and the temperature of the plan."""
+    return PoseContext(approach_directions(plan[list(AXIS_ORDER)].to_numpy(dtype=float)),
+                       plan["time_s"].to_numpy(float), plan["temperature_c"].to_numpy(float))

@@ -20,12 +20,11 @@ from tasks.campaign.folder import COMMAND_COLUMNS, TRUTH_DIR, image_relpath, wri
 from tasks.core.atomic_io import atomic_write_bytes, atomic_write_parquet, atomic_write_text
 from tasks.core.version import FIVECAL_VERSION
 from tasks.machine.camera_model import CameraModel
-from tasks.machine.context import PoseContext, approach_directions
 from tasks.machine.description import AXIS_ORDER, Machine, load_machine
 from tasks.machine.effects import camera_changes, module_source_file, parse_effect, private_families
 from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward
-from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign, plan_context
 from tasks.simulation.prototype_errors import load_prototype_errors
 from tasks.simulation.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
 
@@ -72,14 +71,6 @@ def manifest_from_plan(plan: pd.DataFrame) -> pd.DataFrame:
     m["timestamp"] = stamps.dt.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
     m["temperature_c"] = plan["temperature_c"].round(4)
     return m
-
-
-def plan_context(plan: pd.DataFrame) -> PoseContext:
-    """The context of every planned image (rows in capture order, AXIS_ORDER columns, time_s,
-    temperature_c): the approach direction of each axis from the moves of the plan (home before
-    the first row), the time and the temperature of the plan."""
-    return PoseContext(approach_directions(plan[list(AXIS_ORDER)].to_numpy(dtype=float)),
-                       plan["time_s"].to_numpy(float), plan["temperature_c"].to_numpy(float))
 
 
 def simulate_truth(machine: Machine, errors: ErrorModel, plan: pd.DataFrame,

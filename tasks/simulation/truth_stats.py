@@ -44,9 +44,9 @@ def tip_errors(machine: Machine, commands: np.ndarray, errors: ErrorModel,
 def validation_poses(machine: Machine, poses: int = 100, seed: int = 0) -> tuple[np.ndarray, PoseContext]:
     """The ``validation`` poses of the seed's campaign plan with ``poses`` of them (commands (N, 5),
     mm and deg), each with the context the simulator gives it there: approach per axis from the
-    plan's moves, time since the campaign's start and temperature (:func:`tasks.simulation.simulate.plan_context`)."""
-    from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign
-    from tasks.simulation.simulate import plan_context
+    plan's moves, time since the campaign's start and temperature
+    (:func:`tasks.simulation.campaign_plan.plan_context`)."""
+    from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign, plan_context
 
     plan, _ = plan_campaign(machine, CampaignPlan(validation_poses=poses), seed)
     rows = np.flatnonzero((plan["stage"] == "validation").to_numpy())

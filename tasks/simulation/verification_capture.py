@@ -22,15 +22,8 @@ from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES, capture_rows
 from tasks.campaign.folder import COMMAND_COLUMNS, TRUTH_DIR, write_manifest, write_metadata
 from tasks.core.atomic_io import staged_folder
 from tasks.machine.description import AXIS_ORDER, load_machine
-from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign, temperature_at
-from tasks.simulation.simulate import (
-    EFFECT_MODULES_DIR,
-    manifest_from_plan,
-    plan_context,
-    read_truth,
-    simulate_truth,
-    write_images,
-)
+from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign, plan_context, temperature_at
+from tasks.simulation.simulate import EFFECT_MODULES_DIR, manifest_from_plan, read_truth, simulate_truth, write_images
 
 
 def is_simulated(campaign_folder: Path) -> bool:

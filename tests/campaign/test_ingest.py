@@ -32,6 +32,7 @@ from tasks.campaign.ingest import (
     load_manifest,
     summarise,
 )
+from tasks.core import atomic_io
 from tasks.lake import store as results_lake
 from tasks.lake.store import read_provenance, read_table, write_partition
 
@@ -441,7 +442,7 @@ def test_two_rename_fallback_also_replaces_the_partition(tiny_campaign, tmp_path
     root = tmp_path / "results"
     _, images = check_campaign(tiny_campaign)
     write_partition("images", "tiny", images, {}, root)
-    monkeypatch.setattr(results_lake, "_exchange", lambda a, b: False)
+    monkeypatch.setattr(atomic_io, "_exchange", lambda a, b: False)
     write_partition("images", "tiny", images.iloc[:2], {}, root)
     assert len(read_table("images", root)) == 2
     assert list((root / ".staging").iterdir()) == []

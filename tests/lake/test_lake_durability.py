@@ -44,7 +44,7 @@ def test_lake_files_and_folders_follow_the_umask(tmp_path, umask, mask, file_mod
 def test_the_file_and_the_folders_are_fsynced_before_the_swap_and_after(tmp_path, monkeypatch):
     write_partition("extra", "c1", rows(1.0), {}, tmp_path)
     events: list[tuple[str, str]] = []
-    real_fsync, real_swap = os.fsync, results_lake._swap_in
+    real_fsync, real_swap = os.fsync, results_lake.swap_in_folder
 
     def fsync(fd):
         events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
@@ -55,7 +55,7 @@ def test_the_file_and_the_folders_are_fsynced_before_the_swap_and_after(tmp_path
         real_swap(new, dest)
 
     monkeypatch.setattr(os, "fsync", fsync)
-    monkeypatch.setattr(results_lake, "_swap_in", swap)
+    monkeypatch.setattr(results_lake, "swap_in_folder", swap)
     write_partition("extra", "c1", rows(2.0), {}, tmp_path)
     kinds = [(k, Path(p).name if k == "fsync" else "") for k, p in events]
     swap_at = kinds.index(("swap", ""))

@@ -15,9 +15,9 @@ from tasks.campaign.capture_request import capture_times, planned_capture_contex
 from tasks.machine.context import PoseContext
 from tasks.machine.effects import EFFECTS, parse_effect, private_families
 from tasks.machine.kinematics import forward, tip_pose_error
-from tasks.simulation.campaign_plan import CampaignPlan
+from tasks.simulation.campaign_plan import CampaignPlan, plan_context
 from tasks.simulation.prototype_errors import load_prototype_errors
-from tasks.simulation.simulate import plan_context, read_truth, write_campaign_truth
+from tasks.simulation.simulate import read_truth, write_campaign_truth
 from tasks.simulation.truth_stats import effects_change, validation_poses
 from tasks.simulation.verification_capture import capture_plan, true_campaign_errors, true_capture_errors
 

@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 
 from tasks.analysis.drift import PDGE_COMPONENTS, PDGE_STATISTICS, DriftTolerance
 from tasks.core.units import UNIT_LABEL
-from tasks.report.figures import new_figure, mark_no_data
+from tasks.report.figures import mark_no_data, new_figure
 
 
 def campaign_ranks(drift: pd.DataFrame) -> dict[str, int]:

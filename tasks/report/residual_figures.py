@@ -40,7 +40,7 @@ from tasks.analysis.residuals import (
 )
 from tasks.identification.measurements import COMMAND_COLUMNS
 from tasks.machine.camera_model import CameraModel
-from tasks.report.figures import new_figure, mark_no_data
+from tasks.report.figures import mark_no_data, new_figure
 from tasks.report.tables import fmt, fmt_g, md_table
 
 # variable -> (scale applied to x for display, axis label)

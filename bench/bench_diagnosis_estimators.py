@@ -18,8 +18,9 @@ from test_diagnosis import COV, PLAN, simulate  # noqa: E402
 
 from tasks.analysis.diagnosis import cross_validated_rms, diagnose  # noqa: E402
 from tasks.analysis.diagnosis.linearisation import alternation_of  # noqa: E402
+from tasks.identification.calibration import calibrate  # noqa: E402
 from tasks.identification.measurements import planned_measurements  # noqa: E402
-from tasks.identification.pige_identification import CalibrationResult, calibrate  # noqa: E402
+from tasks.identification.pige_identification import CalibrationResult  # noqa: E402
 from tasks.machine.description import load_machine  # noqa: E402
 from tasks.machine.effects import parse_effect  # noqa: E402
 from tasks.simulation.campaign_plan import plan_campaign  # noqa: E402

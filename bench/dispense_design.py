@@ -29,8 +29,8 @@ from tasks.campaign.ingest import load_campaign_metadata
 from tasks.core.units import UM
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset, landing_points
 from tasks.dispensing.workpiece import Workpiece, dispensing_commands, ring_layout
+from tasks.identification.calibration import calibrate
 from tasks.identification.measurements import assemble_measurements
-from tasks.identification.pige_identification import calibrate
 from tasks.lake.store import read_table
 from tasks.machine.kinematics import forward
 from tasks.simulation.simulate import read_truth

@@ -49,10 +49,11 @@ from tasks.analysis.compensation import desired_tip_poses
 from tasks.analysis.residuals import trend_summary
 from tasks.core import se3
 from tasks.core.units import ARCSEC, UM
+from tasks.identification.calibration import calibrate
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.parameters import default_parameters
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS
-from tasks.identification.pige_identification import calibrate, synthetic_measurements
+from tasks.identification.pige_identification import synthetic_measurements
 from tasks.identification.uncertainty import propagate_uncertainty
 from tasks.lake.store import read_table
 from tasks.machine.description import AXIS_ORDER, load_machine

@@ -28,8 +28,9 @@ from tasks.analysis.verification import tip_errors_with_tool_direction, vbm_erro
 from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES, planned_capture_context
 from tasks.core import se3
 from tasks.core.units import ARCSEC
+from tasks.identification.calibration import calibrate
 from tasks.identification.measurements import Measurements, planned_measurements
-from tasks.identification.pige_identification import calibrate, synthetic_measurements
+from tasks.identification.pige_identification import synthetic_measurements
 from tasks.machine.description import load_machine
 from tasks.machine.effects import EFFECTS, load_effect_modules, parse_effect, private_families
 from tasks.machine.error_model import ErrorModel

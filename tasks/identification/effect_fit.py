@@ -23,7 +23,7 @@ extraction and eq. 22 are two separate estimators:
    everything but the swept axis from the model) until no parameter moves by more than 0.1 of its
    standard uncertainty (at most ``rounds`` times);
 4. the joint step of :mod:`tasks.identification.joint_fit` closes the fit, as it closes
-   :func:`~tasks.identification.pige_identification.calibrate`, the effects' parameters refined with
+   :func:`~tasks.identification.calibration.calibrate`, the effects' parameters refined with
    the profiles and constants (unidentifiable effects reported as the coupled fit found them); the
    alternation's solution is kept beside it (``alternation``: the diagnosis is linearised about it,
    :func:`tasks.analysis.diagnosis.linearisation.alternation_of`). A fitted effect that changes a camera's
@@ -53,6 +53,7 @@ from tasks.identification.effect_params import (
 )
 from tasks.identification.identifying_poses import identifying_poses
 from tasks.identification.imaging import imaging_corrected
+from tasks.identification.joint_fit import joint_refine
 from tasks.identification.measurements import Measurements
 from tasks.identification.parameters import ParamSpec, apply_parameters, default_parameters
 from tasks.identification.pdge_extraction import TabulatedProfile, extract_pdges, measured_error_motions
@@ -60,7 +61,9 @@ from tasks.identification.pdge_response import axis_responses
 from tasks.identification.pige_identification import (
     IDENTIFICATION_CAMERA,
     IDENTIFICATION_STAGES,
+    JOINT_START_ROUNDS,
     CalibrationResult,
+    alternate,
     identify_pige,
     synthetic_measurements,
 )
@@ -231,9 +234,6 @@ def _keep_unidentified(fit, identifiable: np.ndarray):
 def _joint_truth(machine: Machine, clean: Measurements, specs: list[ParamSpec], pdge) -> object:
     """The truth's exact poses ``clean`` calibrated as calibrate() does for its truth gauge: the
     alternation's start and the joint step, with the noisy fit's smoothers (``pdge``)."""
-    from tasks.identification.joint_fit import joint_refine
-    from tasks.identification.pige_identification import JOINT_START_ROUNDS, alternate
-
     poses = clean.stage(*IDENTIFICATION_STAGES, camera=IDENTIFICATION_CAMERA)
     clean_pdge, fit, _ = alternate(machine, ErrorModel(), clean, poses, specs, rounds=JOINT_START_ROUNDS,
                                    smoothing=pdge.smoothing)
@@ -243,7 +243,7 @@ def _joint_truth(machine: Machine, clean: Measurements, specs: list[ParamSpec], 
 def calibrate_with_effects(machine: Machine, measurements: Measurements, base: ErrorModel,
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
                            rounds: int = ROUNDS) -> CalibrationResult:
-    """The calibration of :func:`tasks.identification.pige_identification.calibrate` with the parameters
+    """The calibration of :func:`tasks.identification.calibration.calibrate` with the parameters
     of ``base.effects`` fitted too (their values in ``base`` are the starting point), by the alternation
     and then the joint step (the alternation's solution alone when a fitted effect acts on a camera's
     imaging; it is kept in ``alternation``, which the diagnosis linearises about). The pige table
@@ -282,8 +282,6 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
     # the poses as measured, so a fitted effect that changes a camera's imaging keeps the alternation's.
     joint = held or not any(_acts_on_cameras(e) for e in effects)
     if joint:
-        from tasks.identification.joint_fit import joint_refine
-
         skeleton = _model(base, _set(effects, specs_e, np.zeros(len(specs_e))))
         pdge, fit, _ = joint_refine(machine, skeleton, measurements, poses, pdge, fit)
         fit = _keep_unidentified(fit, alternation.pige.fit.identifiable)
@@ -296,11 +294,10 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
                          f"poses that would identify it: {identifying_poses(e)}.")
     truth_fit = None
     if truth is not None:  # the truth in the fit's gauge: the same calibration of its exact poses
-        from tasks.identification.pige_identification import alternate, calibrate
-
         clean = synthetic_measurements(machine, truth, measurements)
         if truth.effects:
-            truth_fit = calibrate(machine, clean, specs=const_specs, base=ErrorModel(effects=list(truth.effects))).pige
+            truth_fit = calibrate_with_effects(machine, clean, ErrorModel(effects=list(truth.effects)),
+                                               specs=const_specs).pige
         elif joint:  # as calibrate() expresses the truth for a fit that ends with the joint step
             truth_fit = _joint_truth(machine, clean, const_specs, pdge)
         else:  # the alternation, as this fit's

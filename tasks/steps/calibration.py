@@ -18,8 +18,9 @@ from prefect.cache_policies import NO_CACHE
 from tasks.analysis.compensation import Compensation, compensate
 from tasks.analysis.diagnosis.diagnose import DIAGNOSIS_CODE_VERSION
 from tasks.campaign.capture_request import repeats_key
+from tasks.identification.calibration import calibrate
 from tasks.identification.measurements import Measurements, assemble_measurements
-from tasks.identification.pige_identification import CalibrationResult, calibrate
+from tasks.identification.pige_identification import CalibrationResult
 from tasks.identification.uncertainty import NOISE_DRAWS, PropagatedUncertainty, propagate_uncertainty
 from tasks.machine.context import PoseContext
 from tasks.machine.description import Machine

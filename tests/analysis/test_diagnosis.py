@@ -26,11 +26,12 @@ from tasks.analysis.diagnosis import cross_validated_rms, diagnose, load_effect_
 from tasks.analysis.residuals import pose_residual_table, trend_summary
 from tasks.core import se3
 from tasks.core.units import ARCSEC
+from tasks.identification.calibration import calibrate
 from tasks.identification.imaging import imaging_bias
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS, extract_pdges
 from tasks.identification.pdge_response import axis_responses
-from tasks.identification.pige_identification import calibrate, synthetic_measurements
+from tasks.identification.pige_identification import synthetic_measurements
 from tasks.identification.uncertainty import NOISE_DRAWS, propagate_uncertainty
 from tasks.machine.effects import EFFECTS, parse_effect
 from tasks.machine.error_model import COMPONENT_SCALE, ErrorModel

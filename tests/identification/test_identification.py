@@ -12,13 +12,13 @@ from tasks.analysis.verification import capture_errors, modelled_errors, noise_f
 from tasks.campaign.folder import capture_image_id, validation_id_of
 from tasks.core import se3
 from tasks.core.units import ARCSEC
+from tasks.identification.calibration import calibrate
 from tasks.identification.levenberg_marquardt import levenberg_marquardt
 from tasks.identification.measurements import Measurements, planned_measurements
 from tasks.identification.pdge_extraction import COMPONENT_COLUMNS, extract_pdges
 from tasks.identification.pige_identification import (
     IDENTIFICATION_CAMERA,
     IDENTIFICATION_STAGES,
-    calibrate,
     identify_pige,
     null_space_sentences,
     synthetic_measurements,

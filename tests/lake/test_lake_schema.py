@@ -118,8 +118,8 @@ def _write_residual_tables(campaign: Path, root: Path) -> None:
     from tasks.analysis.model_ladder import append_step, ladder_step
     from tasks.analysis.residuals import dot_residual_table, plates_of, pose_residual_table
     from tasks.campaign.ingest import load_campaign_metadata
+    from tasks.identification.calibration import calibrate
     from tasks.identification.measurements import assemble_measurements
-    from tasks.identification.pige_identification import calibrate
     from tasks.vision.detector_comparison import intrinsics_from_table
     from tasks.vision.pipeline import content_key, nominal_machine
 

@@ -164,8 +164,8 @@ CAMPAIGN_COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 / 206265) ** 2] *
 @pytest.fixture(scope="module")
 def context_campaign(machine):
     """The context plan (seed 10) at pose level: its plan, measurement frame and clean calibration."""
+    from tasks.identification.calibration import calibrate
     from tasks.identification.measurements import planned_measurements
-    from tasks.identification.pige_identification import calibrate
     from tasks.simulation.campaign_plan import plan_campaign
 
     plan, _ = plan_campaign(machine, CampaignPlan.context(), 10)
@@ -212,7 +212,7 @@ def test_on_the_context_plan_the_diagnosis_accepts_the_hidden_effect_and_adding_
     ended with the joint step, compensates the true tip to within 1.2× of the clean campaign's, where
     the model without it is off by the effect."""
     from tasks.analysis.diagnosis import diagnose
-    from tasks.identification.pige_identification import calibrate
+    from tasks.identification.calibration import calibrate
     from tasks.machine.error_model import ErrorModel
 
     plan, frame, clean_model = context_campaign

@@ -16,7 +16,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1]), str(Path(__file__).res
 
 from test_diagnosis import COV, PLAN, simulate  # noqa: E402
 
-from tasks.analysis.diagnosis import cross_validated_rms, diagnose  # noqa: E402
+from tasks.analysis.diagnosis import diagnose, linearised_cross_validated_rms  # noqa: E402
 from tasks.analysis.diagnosis.linearisation import alternation_of  # noqa: E402
 from tasks.identification.calibration import calibrate  # noqa: E402
 from tasks.identification.measurements import planned_measurements  # noqa: E402
@@ -36,7 +36,7 @@ def main(specs: list[str]) -> None:
     as_is = CalibrationResult(joint.pdge, joint.pige, extraction_model=joint.extraction_model)
     for name, result in (("joint", as_is), ("alternation", alternation)):
         d = diagnose(machine, meas, result, max_effects=1)
-        print(f"{name}: cv_rms {cross_validated_rms(machine, meas, result):.3f}, best {d.best}")
+        print(f"{name}: cv_rms {linearised_cross_validated_rms(machine, meas, result):.3f}, best {d.best}")
         print(d.table.head(3)[["family", "axis", "spec", "p_value", "delta_bic", "cv_rms", "accepted"]].to_string())
 
 

@@ -31,10 +31,10 @@ from tasks.machine.formulations import (
     dh_parameter_table,
     dh_pige_parameters,
     dh_tool_in_workpiece,
-    format_table5,
     global_poe_tool_in_workpiece,
 )
 from tasks.machine.kinematics import forward, position_orientation_error
+from tasks.report.tables import format_table5
 from tasks.simulation.campaign_plan import CampaignPlan, five_axis_poses
 from tasks.simulation.prototype_errors import load_prototype_errors
 

@@ -1,9 +1,9 @@
 """Watch the error fall: the campaign's model ladder, one row per refit (design §6, issue 5 item 4).
 
 SYNOPSIS
-    >>> from tasks.analysis.model_ladder import ladder_step, cross_validated_rms, append_step
+    >>> from tasks.analysis.model_ladder import ladder_step, refit_cross_validated_rms, append_step
     >>> row = ladder_step(machine, result.model, result.pige.fit, measurements,
-    ...                   cv_rms=cross_validated_rms(machine, result.model, result.pige.specs, measurements))
+    ...                   cv_rms=refit_cross_validated_rms(machine, result.model, result.pige.specs, measurements))
     >>> ladder = append_step("c2026w02", row, provenance)     # read, append or replace, write atomically
 
 Each time a campaign is refitted with another set of effects, one step is added to its ``model_ladder``
@@ -12,7 +12,7 @@ explains the campaign, in three ways that answer different questions:
 
 - ``train_rms``: RMS of the whitened residuals the fit minimised (eq. 22; dimensionless). It can only
   fall as parameters are added.
-- ``cv_rms``: the same RMS on five-axis poses the fit did not see (k-fold refits, :func:`cross_validated_rms`).
+- ``cv_rms``: the same RMS on five-axis poses the fit did not see (k-fold refits, :func:`refit_cross_validated_rms`).
   A parameter that fits noise makes it rise; an effect that is really there makes it fall. Both are 1
   when the model explains everything down to the measurement noise and the pose covariances are honest.
 - ``validation_position_um`` / ``validation_orientation_arcsec``: on the held-out ``validation`` poses,
@@ -163,7 +163,7 @@ def ladder_step(machine: Machine, model: ErrorModel, fit: FitResult, meas: Measu
     model: the fitted model (its ``effects`` name the step). fit: the constant-parameter fit
     (``CalibrationResult.pige.fit``): its whitened residuals give train_rms, n_residuals and bic, its
     parameters n_params. meas: the campaign's measurements (the validation poses of ``camera`` give the
-    validation errors and their noise floor). cv_rms: from :func:`cross_validated_rms` (NaN if not run).
+    validation errors and their noise floor). cv_rms: from :func:`refit_cross_validated_rms` (NaN if not run).
     tip: the compensated tip error of this model (:func:`compensated_tip_errors`; missing columns NaN).
     """
     r = np.asarray(fit.residual, dtype=float)
@@ -184,7 +184,7 @@ def ladder_step(machine: Machine, model: ErrorModel, fit: FitResult, meas: Measu
             "created_at": pd.Timestamp(datetime.now(UTC))}
 
 
-def cross_validated_rms(machine: Machine, model: ErrorModel, specs: Sequence[ParamSpec], meas: Measurements,
+def refit_cross_validated_rms(machine: Machine, model: ErrorModel, specs: Sequence[ParamSpec], meas: Measurements,
                         folds: int = 5, seed: int = 0) -> float:
     """RMS of the whitened residuals of five-axis poses predicted by fits that did not see them.
 

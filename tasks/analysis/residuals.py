@@ -49,7 +49,7 @@ from scipy import stats
 
 from tasks.core import se3
 from tasks.core.units import ARCSEC, UM
-from tasks.identification.measurements import COMMAND_COLUMNS, Measurements
+from tasks.identification.measurements import Measurements
 from tasks.identification.pige_identification import (
     IDENTIFICATION_CAMERA,
     IDENTIFICATION_STAGES,
@@ -57,7 +57,7 @@ from tasks.identification.pige_identification import (
     whitening,
 )
 from tasks.machine.camera_model import CameraModel, project_points
-from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE, Machine
+from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE, COMMAND_COLUMNS, Machine
 from tasks.machine.error_model import ErrorModel
 from tasks.machine.plate import DotPlate
 

@@ -25,10 +25,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from tasks.campaign.folder import COMMAND_COLUMNS, MANIFEST_FILE, METADATA_FILE, capture_image_id, image_relpath
+from tasks.campaign.folder import MANIFEST_FILE, METADATA_FILE, capture_image_id, image_relpath
 from tasks.campaign.ingest import CampaignError, load_manifest
 from tasks.core.atomic_io import atomic_write_text
 from tasks.machine.context import PoseContext, approach_directions
+from tasks.machine.description import COMMAND_COLUMNS
 
 PLAN_FILE = "capture_plan.csv"
 CAPTURE_STAGE = "verification"

@@ -31,7 +31,6 @@ MANIFEST_COLUMNS = (
     "image_id", "path", "camera", "stage", "group", "repeat",
     "X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg", "timestamp", "temperature_c",
 )
-COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
 # The manifest's stage vocabulary (docs/campaign-format.md) and each stage's groups: any
 # non-empty name (a calibration trial), one of the axes (the axis a PDGE sweep moves), or the
 # stage's own name (None).

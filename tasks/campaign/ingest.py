@@ -50,8 +50,9 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from tasks.campaign.folder import COMMAND_COLUMNS, MANIFEST_COLUMNS, MANIFEST_FILE, MANIFEST_STAGES, METADATA_FILE
+from tasks.campaign.folder import MANIFEST_COLUMNS, MANIFEST_FILE, MANIFEST_STAGES, METADATA_FILE
 from tasks.campaign.schema import SUPPORTED_FORMAT_VERSIONS, SchemaFault, check_metadata
+from tasks.machine.description import COMMAND_COLUMNS
 
 CODE_VERSION = "ingest-2"  # bump when check_image_files would return something else for the same bytes
 CHUNK_SIZE = 32  # images per cached chunk

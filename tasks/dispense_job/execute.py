@@ -20,9 +20,8 @@ import numpy as np
 import pandas as pd
 
 from tasks.dispense_job.boards import TraySpec, pixels_to_tray, tray_to_pixels
-from tasks.dispense_job.program import COMMAND_COLUMNS
 from tasks.dispensing.tip import landing_points
-from tasks.machine.description import Machine
+from tasks.machine.description import COMMAND_COLUMNS, Machine
 from tasks.machine.error_model import ErrorModel
 
 

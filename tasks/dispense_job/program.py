@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import pandas as pd
 
-COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")
+from tasks.machine.description import COMMAND_COLUMNS
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,8 @@ from tasks.identification.parameters import ParamSpec, apply_parameters, default
 from tasks.identification.pdge_extraction import TabulatedProfile, extract_pdges, measured_error_motions
 from tasks.identification.pdge_response import axis_responses
 from tasks.identification.pige_identification import (
+    ALTERNATION_CONVERGED,
+    ALTERNATION_ROUNDS,
     IDENTIFICATION_CAMERA,
     IDENTIFICATION_STAGES,
     JOINT_START_ROUNDS,
@@ -70,9 +72,6 @@ from tasks.identification.pige_identification import (
 from tasks.machine.description import Machine
 from tasks.machine.effects import Effect, camera_changes
 from tasks.machine.error_model import ErrorModel
-
-CONVERGED = 0.1  # stop when no parameter moves by more than this fraction of its standard uncertainty
-ROUNDS = 6
 
 
 def acts(machine: Machine, effect: Effect, name: str, meas: Measurements) -> bool:
@@ -242,7 +241,7 @@ def _joint_truth(machine: Machine, clean: Measurements, specs: list[ParamSpec], 
 
 def calibrate_with_effects(machine: Machine, measurements: Measurements, base: ErrorModel,
                            truth: ErrorModel | None = None, specs: list[ParamSpec] | None = None,
-                           rounds: int = ROUNDS) -> CalibrationResult:
+                           rounds: int = ALTERNATION_ROUNDS) -> CalibrationResult:
     """The calibration of :func:`tasks.identification.calibration.calibrate` with the parameters
     of ``base.effects`` fitted too (their values in ``base`` are the starting point), by the alternation
     and then the joint step (the alternation's solution alone when a fitted effect acts on a camera's
@@ -272,7 +271,7 @@ def _calibrate_with_effects(machine, measurements, base, truth, specs, rounds) -
         x_const = fit.fit.x[:n_const]
         effects = _set(effects, specs_e, fit.fit.x[n_const:])
         u = np.where(fit.fit.identifiable, fit.fit.uncertainty, np.inf)
-        if np.all(np.abs(fit.fit.x - before) <= CONVERGED * u):
+        if np.all(np.abs(fit.fit.x - before) <= ALTERNATION_CONVERGED * u):
             break
     pdge = extract_pdges(machine, ext, imaging_corrected(machine, ext, measurements), truth)  # the table
     alternation = CalibrationResult(pdge, fit, extraction_model=ext)

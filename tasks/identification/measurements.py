@@ -14,10 +14,9 @@ import numpy as np
 import pandas as pd
 
 from tasks.machine.context import PoseContext, approach_directions
-from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE
+from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE, COMMAND_COLUMNS
 from tasks.vision.poses import covariances_from_table, poses_from_table
 
-COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # images-table names of AXIS_ORDER
 INFO_COLUMNS = ("image_id", "camera", "stage", "group", "repeat", "time_s", "temperature_c")
 
 

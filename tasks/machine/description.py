@@ -27,6 +27,7 @@ from tasks.machine.plate import DotPlate
 
 MACHINES_DIR = Path(__file__).parent / "machines"
 AXIS_ORDER = ("X", "Y", "Z", "A", "C")  # column order of command arrays everywhere
+COMMAND_COLUMNS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # table columns of the commands, in AXIS_ORDER
 CALIBRATION_STAGE = "camera_calibration"  # the campaign stage of the self-calibration views
 
 

@@ -46,7 +46,7 @@ Frames and units: base frame B of the Machine; mm and rad inside; commands (N, 5
 SYNOPSIS
     >>> from tasks.machine.description import load_machine
     >>> from tasks.simulation.prototype_errors import load_prototype_errors
-    >>> from tasks.machine.formulations import compare_formulations, format_table5
+    >>> from tasks.machine.formulations import compare_formulations
     >>> m = load_machine("prototype")
     >>> table = compare_formulations(m, load_prototype_errors(), [[0, 0, 0, 10, 30]], repeats=1)
     >>> list(table.formulation)
@@ -681,14 +681,3 @@ def compare_formulations(machine: Machine, errors: ErrorModel, commands, repeats
             "note": note,
         })
     return pd.DataFrame(rows, columns=list(TABLE5_COLUMNS))
-
-
-def format_table5(df: pd.DataFrame) -> str:
-    """Markdown table of :func:`compare_formulations`' result."""
-    head = ("| formulation | mean single run (ms/pose) | total, N poses batched (ms) | position error norm (µm) "
-            "| orientation error norm (″) | note |")
-    lines = [head, "|---|---:|---:|---:|---:|---|"]
-    for r in df.itertuples(index=False):
-        lines.append(f"| {r.formulation} | {r.mean_single_run_ms:.4f} | {r.total_300_ms:.3f} | "
-                     f"{r.position_error_norm_um:.3g} | {r.orientation_error_norm_arcsec:.3g} | {r.note} |")
-    return "\n".join(lines)

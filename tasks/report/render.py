@@ -93,7 +93,7 @@ def _mean_of(table: pd.DataFrame, source: str, quantity: str, phase: str) -> flo
 
 def _arrow(table: pd.DataFrame, source: str, quantity: str, unit: str) -> str:
     before, after = _mean_of(table, source, quantity, "before"), _mean_of(table, source, quantity, "after")
-    rate = T._rate(before, after)
+    rate = T.improvement_rate(before, after)
     tail = "" if T.is_missing(rate) else (f" ({T.fmt(rate, 1)} % better)" if rate >= 0 else
                                           f" ({T.fmt(-rate, 1)} % worse)")
     return f"{T.fmt_unit(before, unit)} → {T.fmt_unit(after, unit)} {T.UNIT_LABEL[unit]}{tail}"

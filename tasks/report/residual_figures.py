@@ -38,8 +38,8 @@ from tasks.analysis.residuals import (
     binned_mean,
     worst_poses,
 )
-from tasks.identification.measurements import COMMAND_COLUMNS
 from tasks.machine.camera_model import CameraModel
+from tasks.machine.description import COMMAND_COLUMNS
 from tasks.report.figures import mark_no_data, new_figure
 from tasks.report.tables import fmt, fmt_g, md_table
 

@@ -137,7 +137,7 @@ def _stats(values: pd.Series) -> dict[str, float]:
             "std": float(v.std(ddof=1)) if v.size > 1 else 0.0}
 
 
-def _rate(before: float, after: float) -> float:
+def improvement_rate(before: float, after: float) -> float:
     """Improvement rate 100·(1 − after/before) (%), NaN when either is missing or before is 0."""
     if is_missing(before) or is_missing(after) or before == 0:
         return np.nan
@@ -187,7 +187,8 @@ def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
                     "source": source, "quantity": quantity, "unit": unit, "statistic": stat,
                     "n_before": stats["before"]["n"], "n_after": stats["after"]["n"],
                     "before": stats["before"][stat], "after": stats["after"][stat],
-                    "improvement_pct": _rate(stats["before"][stat], stats["after"][stat]) if mean_row else np.nan,
+                    "improvement_pct": (improvement_rate(stats["before"][stat], stats["after"][stat])
+                                        if mean_row else np.nan),
                     "seed_before": SEED_BEFORE.get(key, np.nan), "seed_after": SEED_AFTER.get(key, np.nan),
                     "seed_improvement_pct": SEED_IMPROVEMENT_PCT.get(quantity, np.nan) if mean_row else np.nan,
                     "noise_floor_before": floor["before"] if mean_row else np.nan,
@@ -230,8 +231,8 @@ def format_before_after(table: pd.DataFrame) -> str:
 
 def seed_rate_note() -> str:
     """A sentence: the seed's published rates against the rates its own published means give."""
-    pos = _rate(SEED_BEFORE["position_mean_um"], SEED_AFTER["position_mean_um"])
-    ori = _rate(SEED_BEFORE["orientation_mean_arcsec"], SEED_AFTER["orientation_mean_arcsec"])
+    pos = improvement_rate(SEED_BEFORE["position_mean_um"], SEED_AFTER["position_mean_um"])
+    ori = improvement_rate(SEED_BEFORE["orientation_mean_arcsec"], SEED_AFTER["orientation_mean_arcsec"])
     return (f"The seed's published improvement rates ({SEED_IMPROVEMENT_PCT['position']:.1f} % position, "
             f"{SEED_IMPROVEMENT_PCT['orientation']:.1f} % orientation) do not follow exactly from its own "
             f"published means: 1 − {SEED_AFTER['position_mean_um']:.2f}/{SEED_BEFORE['position_mean_um']:.1f} "

@@ -16,11 +16,11 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from tasks.campaign.folder import COMMAND_COLUMNS, TRUTH_DIR, image_relpath, write_manifest, write_metadata
+from tasks.campaign.folder import TRUTH_DIR, image_relpath, write_manifest, write_metadata
 from tasks.core.atomic_io import atomic_write_bytes, atomic_write_parquet, atomic_write_text
 from tasks.core.version import FIVECAL_VERSION
 from tasks.machine.camera_model import CameraModel
-from tasks.machine.description import AXIS_ORDER, Machine, load_machine
+from tasks.machine.description import AXIS_ORDER, COMMAND_COLUMNS, Machine, load_machine
 from tasks.machine.effects import camera_changes, module_source_file, parse_effect, private_families
 from tasks.machine.error_model import ErrorModel
 from tasks.machine.kinematics import forward

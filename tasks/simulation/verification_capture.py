@@ -19,9 +19,9 @@ import pandas as pd
 
 from tasks.analysis.verification import modelled_errors
 from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES, capture_rows
-from tasks.campaign.folder import COMMAND_COLUMNS, TRUTH_DIR, write_manifest, write_metadata
+from tasks.campaign.folder import TRUTH_DIR, write_manifest, write_metadata
 from tasks.core.atomic_io import staged_folder
-from tasks.machine.description import AXIS_ORDER, load_machine
+from tasks.machine.description import AXIS_ORDER, COMMAND_COLUMNS, load_machine
 from tasks.simulation.campaign_plan import CampaignPlan, plan_campaign, plan_context, temperature_at
 from tasks.simulation.simulate import EFFECT_MODULES_DIR, manifest_from_plan, read_truth, simulate_truth, write_images
 

@@ -127,11 +127,11 @@ def formulations_task(machine: Machine, model: ErrorModel, commands: np.ndarray)
 def cross_validate_task(machine: Machine, model: ErrorModel, specs: list, measurements: Measurements) -> float:
     """Cross-validated RMS of the whitened five-axis residuals.
 
-    See :func:`tasks.analysis.model_ladder.cross_validated_rms`.
+    See :func:`tasks.analysis.model_ladder.refit_cross_validated_rms`.
     """
-    from tasks.analysis.model_ladder import cross_validated_rms
+    from tasks.analysis.model_ladder import refit_cross_validated_rms
 
-    return cross_validated_rms(machine, model, specs, measurements)
+    return refit_cross_validated_rms(machine, model, specs, measurements)
 
 
 @task(name="diagnose", persist_result=True,

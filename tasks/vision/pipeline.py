@@ -32,7 +32,7 @@ import pandas as pd
 
 from tasks.campaign.ingest import MAX_FAULT_FRACTION, CampaignError
 from tasks.machine.camera_model import CameraModel
-from tasks.machine.description import CALIBRATION_STAGE, Machine, machine_from_dict, plate_seen
+from tasks.machine.description import CALIBRATION_STAGE, COMMAND_COLUMNS, Machine, machine_from_dict, plate_seen
 from tasks.machine.kinematics import forward
 from tasks.machine.plate import DotPlate
 from tasks.vision.camera_calibration import calibrate_camera, nominal_camera, trial_views
@@ -44,7 +44,6 @@ from tasks.vision.poses import estimate_poses
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
 # every cache key of the measure flow.
 VISION_CODE_VERSION = "vision-8"
-COMMANDS = ("X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg")  # in AXIS_ORDER
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
 PRIOR_COLUMNS = tuple(f"prior_h{i}{j}" for i in range(3) for j in range(3))
 """Columns of the predicted plate → image homography that detection takes (:func:`with_detection_inputs`)."""
@@ -116,7 +115,7 @@ def expected_homographies(metadata: dict, images: pd.DataFrame) -> np.ndarray:
     for camera, g in images.iloc[measured].groupby("camera"):
         if camera not in machine.cameras:
             continue
-        T = forward(machine, g[list(COMMANDS)].to_numpy(float)).camera_view(camera)  # (N, 4, 4) T_cam_plate
+        T = forward(machine, g[list(COMMAND_COLUMNS)].to_numpy(float)).camera_view(camera)  # (N, 4, 4) T_cam_plate
         H = machine.cameras[camera].matrix @ T[:, :3][:, :, [0, 1, 3]]
         out[images.index.get_indexer(g.index)] = H / H[:, 2:, 2:]
     return out

@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tasks.analysis.diagnosis import cross_validated_rms, diagnose, load_effect_modules
+from tasks.analysis.diagnosis import diagnose, linearised_cross_validated_rms, load_effect_modules
 from tasks.analysis.residuals import pose_residual_table, trend_summary
 from tasks.core import se3
 from tasks.core.units import ARCSEC
@@ -64,7 +64,7 @@ def no_effect(machine, frame):
     """The campaign without any hidden effect: (measurements, calibration, its cross-validated RMS)."""
     meas = simulate(machine, frame)
     result = calibrate(machine, meas)
-    return meas, result, cross_validated_rms(machine, meas, result)
+    return meas, result, linearised_cross_validated_rms(machine, meas, result)
 
 
 HIDDEN = [
@@ -109,8 +109,8 @@ def test_a_hidden_effect_is_ranked_first_and_adding_it_brings_the_cross_validate
     pige = refit.pige_table().set_index("name")
     assert pige.loc[f"{family}:{amplitude}", "kind"] == "effect" and pige.loc[f"{family}:{amplitude}", "identifiable"]
     _, _, cv_without_effect = no_effect
-    cv_before = cross_validated_rms(machine, meas, result)
-    cv_after = cross_validated_rms(machine, meas, refit)
+    cv_before = linearised_cross_validated_rms(machine, meas, result)
+    cv_after = linearised_cross_validated_rms(machine, meas, refit)
     assert cv_before > 2.0 * cv_without_effect, (cv_before, cv_without_effect)
     assert cv_after < CV_TOLERANCE * cv_without_effect, (cv_after, cv_without_effect)
 
@@ -324,7 +324,7 @@ def test_an_effect_the_catalogue_lacks_shows_against_time_and_a_registered_user_
     assert "follows time with a" in d.sentences[0]
 
     refit = calibrate(machine, meas, base=ErrorModel(effects=[best]))
-    assert cross_validated_rms(machine, meas, refit) < CV_TOLERANCE * no_effect[2]
+    assert linearised_cross_validated_rms(machine, meas, refit) < CV_TOLERANCE * no_effect[2]
 
 
 def test_the_extraction_map_reproduces_the_pdge_extraction(machine, frame):

@@ -12,11 +12,11 @@ from tasks.analysis.model_ladder import (
     LADDER_COLUMNS,
     add_step,
     append_step,
-    cross_validated_rms,
     effect_specs,
     effects_key,
     ladder_step,
     read_ladder,
+    refit_cross_validated_rms,
 )
 from tasks.analysis.residuals import (
     DOT_RESIDUAL_COLUMNS,
@@ -280,7 +280,7 @@ def test_ladder_falls_to_the_noise_floor_when_the_hidden_effect_is_added(machine
     rows = []
     for model in (errors, replace(errors, effects=[DRIFT])):
         fit = identify_pige(machine, model, poses)
-        cv = cross_validated_rms(machine, fit.model, fit.specs, meas, folds=3)
+        cv = refit_cross_validated_rms(machine, fit.model, fit.specs, meas, folds=3)
         rows.append(ladder_step(machine, fit.model, fit.fit, meas, cv_rms=cv))
         ladder = append_step("c1", rows[-1], {"fivecal_version": "test"}, tmp_path)
     before, after = rows

@@ -14,8 +14,9 @@ from tasks.campaign.capture_request import (
     has_capture,
     write_capture_request,
 )
-from tasks.campaign.folder import COMMAND_COLUMNS, MANIFEST_COLUMNS
+from tasks.campaign.folder import MANIFEST_COLUMNS
 from tasks.campaign.ingest import CampaignError
+from tasks.machine.description import COMMAND_COLUMNS
 
 COMMANDS = np.array([[1.0, 2.0, 3.0, 10.0, 20.0], [-1.0, -2.0, -3.0, -10.0, 123.4567891]])
 

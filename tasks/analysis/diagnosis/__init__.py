@@ -4,16 +4,16 @@
   in sentences and the best spec;
 - :func:`calibrate_with_effects` (what ``calibrate(..., base=ErrorModel(effects=[...]))`` and
   ``fivecal calibrate --add-effect SPEC`` run): the effects' amplitudes fitted with the constants;
-- :func:`cross_validated_rms`: a calibration's k-fold cross-validated whitened residual;
+- :func:`linearised_cross_validated_rms`: a calibration's k-fold cross-validated whitened residual;
 - :func:`load_effect_modules` (from :mod:`tasks.machine.effects`): import user effect families
   (``--effect-module mypkg.myeffects``).
 
 See docs/diagnosis.md and docs/user-effects.md.
 """
 
-from tasks.analysis.diagnosis.crossval import cross_validated_rms
+from tasks.analysis.diagnosis.crossval import linearised_cross_validated_rms
 from tasks.analysis.diagnosis.diagnose import Diagnosis, diagnose
 from tasks.identification.effect_fit import calibrate_with_effects
 from tasks.machine.effects import load_effect_modules
 
-__all__ = ["Diagnosis", "calibrate_with_effects", "cross_validated_rms", "diagnose", "load_effect_modules"]
+__all__ = ["Diagnosis", "calibrate_with_effects", "diagnose", "linearised_cross_validated_rms", "load_effect_modules"]

@@ -1,7 +1,7 @@
 """Cross-validated residual of a calibration, with or without extra candidate columns.
 
 SYNOPSIS
-    >>> cross_validated_rms(machine, measurements, result)      # whitened RMS over held-out poses
+    >>> linearised_cross_validated_rms(machine, measurements, result)      # whitened RMS over held-out poses
 
 The fit's images (camera 1's sweeps and five-axis poses) are split into k folds deterministically
 (image i of the fit's order goes to fold i mod k, so every fold holds every stage and time). For
@@ -75,7 +75,7 @@ def cv_improvement_p(without: np.ndarray, with_: np.ndarray) -> float:
     return float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue)
 
 
-def cross_validated_rms(machine: Machine, measurements: Measurements, result: CalibrationResult,
+def linearised_cross_validated_rms(machine: Machine, measurements: Measurements, result: CalibrationResult,
                         folds: int = FOLDS) -> float:
     """Eq. (3) for ``result`` with its own parameters (effects included): whitened RMS over the
     held-out images of camera 1 (sweeps and five-axis poses)."""

@@ -18,23 +18,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from tasks.core import se3
 from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate
-
-
-def rot_x(a_rad: float) -> np.ndarray:
-    c, s = np.cos(a_rad), np.sin(a_rad)
-    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def rot_y(a_rad: float) -> np.ndarray:
-    c, s = np.cos(a_rad), np.sin(a_rad)
-    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
-
-
-def rot_z(a_rad: float) -> np.ndarray:
-    c, s = np.cos(a_rad), np.sin(a_rad)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
 
 def facing_pose(
@@ -52,7 +38,8 @@ def facing_pose(
     axes through the plate centre. ``offset_mm`` shifts the plate centre in camera X / Y.
     """
     r0 = np.diag([1.0, -1.0, -1.0])
-    r = rot_x(np.radians(tilt_x_deg)) @ rot_y(np.radians(tilt_y_deg)) @ r0 @ rot_z(np.radians(rotation_deg))
+    r = (se3.rot_x(np.radians(tilt_x_deg)) @ se3.rot_y(np.radians(tilt_y_deg)) @ r0
+         @ se3.rot_z(np.radians(rotation_deg)))
     t = np.array([offset_mm[0], offset_mm[1], distance_mm], dtype=float)
     return r, t
 

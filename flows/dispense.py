@@ -35,6 +35,7 @@ from tasks.dispensing.measure import dispense_rows, load_capture_manifest
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
 from tasks.dispensing.workpiece import Workpiece, imaging_commands, ring_layout
 from tasks.lake.store import read_provenance, read_table, write_partition
+from tasks.machine.description import COMMAND_COLUMNS
 from tasks.report.dispensing_test import write_dispensing_report
 from tasks.steps.calibration import compensate_task
 from tasks.steps.dispensing import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
@@ -82,6 +83,65 @@ def _fit_rows(rows: pd.DataFrame) -> pd.DataFrame:
     return rows[ok]
 
 
+def plan_first_capture(lake, workpiece: Workpiece, seed: int, orientation: str) -> tuple[dict, dict, pd.DataFrame]:
+    """The nominal and the compensated phase on two workpieces drawn apart over the five-axis poses'
+    range: ({phase: layout}, {phase: imaging commands}, the capture's rows)."""
+    machine = lake.machine
+    five_axis = lake.measurements.stage("pige").commands
+    ranges = np.column_stack([five_axis.min(axis=0), five_axis.max(axis=0)])
+    layouts = {"nominal": ring_layout(machine, workpiece, ranges, seed),
+               "compensated": ring_layout(machine, workpiece, ranges, seed + 1)}
+    imaging = {k: imaging_commands(machine, v.centres, v.surface_z_mm, CAMERA) for k, v in layouts.items()}
+    dispensed = {"nominal": layouts["nominal"].commands,
+                 "compensated": compensate_task.submit(machine, lake.model, layouts["compensated"].commands,
+                                                       orientation).result().commands}
+    rows = pd.concat([plan_rows(k, layouts[k].centres, layouts[k].surface_z_mm, dispensed[k], imaging[k])
+                      for k in ("nominal", "compensated")], ignore_index=True)
+    return layouts, imaging, rows
+
+
+def fit_tip(rows: pd.DataFrame, machine, model):
+    """The tip's constant tool-frame offset from the qualified dots of the nominal and compensated
+    phases (:func:`tasks.dispensing.tip.fit_tip_offset`)."""
+    on = _fit_rows(rows[rows["phase"].isin(["nominal", "compensated"])])
+    fit = fit_tip_offset(machine, model, on[list(COMMAND_COLUMNS)].to_numpy(float),
+                         on[["ring_x_mm", "ring_y_mm"]].to_numpy(float), on[["dx_um", "dy_um"]].to_numpy(float) * 1e-3)
+    get_run_logger().info(
+        f"tip offset (tool frame) from {fit.dots} dots: "
+        + ", ".join(f"{v:+.2f} ± {u:.2f}" for v, u in zip(fit.offset_um, fit.uncertainty_um, strict=True))
+        + f" µm; tool-axis error ∝ sin A {fit.tilt_um:+.2f} ± {fit.tilt_uncertainty_um:.2f} µm; dot residual "
+        f"rms {fit.residual_rms_um:.2f} µm")
+    return fit
+
+
+def verification_with_tip(lake, root: Path | None, fit, orientation: str) -> tuple[pd.DataFrame, dict | None]:
+    """The campaign's verification table with, for a simulated campaign, the true errors of the
+    held-out poses compensated with the tip folded in (phase ``after_tip``); and the truth's summary
+    of the constant tool-frame error before and after the tip fit (None for a lab's campaign)."""
+    machine, model, truth = lake.machine, lake.model, lake.truth
+    verification = read_table("verification", root, lake.campaign_id)
+    verification = verification[verification["phase"] != "after_tip"].drop(columns="campaign_id", errors="ignore")
+    if not lake.simulated:
+        return verification, None
+    validation = lake.measurements.stage("validation", camera=CAMERA)
+    ids, commands = validation.table.image_id.tolist(), validation.commands
+    desired = desired_tip_poses(machine, commands)
+    after_tip = compensate_task.submit(machine, fit.model, commands, orientation).result().commands
+    errors = modelled_errors(machine, truth, desired, after_tip)
+    predicted = predicted_by(machine, fit.model, desired)(after_tip)
+    errors = errors.assign(model_predicted_position_um=predicted[0], model_predicted_orientation_arcsec=predicted[1],
+                           model_predicted_tool_direction_arcsec=predicted[2])
+    verification = pd.concat([verification, verification_table({("after_tip", "truth"): (ids, errors)})],
+                             ignore_index=True)
+    compensated = compensate_task.submit(machine, model, commands, orientation).result().commands
+    return verification, {
+        "constant_before_um": constant_tool_frame_error(machine, truth, desired, compensated).tolist(),
+        "constant_after_tip_um": constant_tool_frame_error(machine, truth, desired, after_tip).tolist(),
+        "position_after_um": float(modelled_errors(machine, truth, desired, compensated)["position_um"].mean()),
+        "position_after_tip_um": float(errors["position_um"].mean()),
+    }
+
+
 @flow(name="dispense-test")
 def dispense_test(campaign: str, results_root: str | None = None, reports_root: str = "reports",
                   run: str | None = None, inspection_config: str | None = None,
@@ -98,58 +158,35 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     folder = Path(campaign).resolve()
     root = None if results_root is None else Path(results_root)
     lake = calibration_from_lake(folder, root, effect_modules)  # calibrate's identification, cached
-    campaign_id, calib_prov, machine, measurements = lake.campaign_id, lake.provenance, lake.machine, lake.measurements
-    model, truth_doc, truth, simulated = lake.model, lake.truth_doc, lake.truth, lake.simulated
-    orientation = calib_prov.get("orientation_objective", "full")
-
-    five_axis = measurements.stage("pige").commands
-    seed = int(truth_doc["seed"]) if simulated else int(content_key(campaign_id)[:8], 16)
-    ranges = np.column_stack([five_axis.min(axis=0), five_axis.max(axis=0)])
-    # the nominal and the compensated phase on two workpieces drawn apart: twice the poses sampled
-    layouts = {"nominal": ring_layout(machine, workpiece, ranges, seed),
-               "compensated": ring_layout(machine, workpiece, ranges, seed + 1)}
-    imaging = {k: imaging_commands(machine, v.centres, v.surface_z_mm, CAMERA) for k, v in layouts.items()}
-    dispensed = {"nominal": layouts["nominal"].commands,
-                 "compensated": compensate_task.submit(machine, model, layouts["compensated"].commands,
-                                                       orientation).result().commands}
+    orientation = lake.provenance.get("orientation_objective", "full")
+    seed = int(lake.truth_doc["seed"]) if lake.simulated else int(content_key(lake.campaign_id)[:8], 16)
     full_camera = lake.full_resolution_camera(CAMERA)
-    first_rows = pd.concat([plan_rows(k, layouts[k].centres, layouts[k].surface_z_mm, dispensed[k], imaging[k])
-                            for k in ("nominal", "compensated")], ignore_index=True)
-    key = content_key(DISPENSE_CODE_VERSION, first_rows.round(9), workpiece.to_dict())[:12]
-    first = _capture(folder / "captures" / f"dispense-{key}", folder, first_rows, workpiece, seed, simulated,
-                     config, logger)
-    summary: dict[str, Any] = {"campaign_id": campaign_id, "captures": {}, "tables": {}}
-    if first is None:
-        summary["captures"]["dispense"] = "requested"
-        return summary
-    summary["captures"]["dispense"] = "measured"
-    rows = _table_rows([first], machine, model, full_camera)
-    fit_on = _fit_rows(rows[rows["phase"].isin(["nominal", "compensated"])])
-    fit = fit_tip_offset(machine, model, fit_on[["X_mm", "Y_mm", "Z_mm", "A_deg", "C_deg"]].to_numpy(float),
-                         fit_on[["ring_x_mm", "ring_y_mm"]].to_numpy(float),
-                         fit_on[["dx_um", "dy_um"]].to_numpy(float) * 1e-3)
-    logger.info(f"tip offset (tool frame) from {fit.dots} dots: "
-                + ", ".join(f"{v:+.2f} ± {u:.2f}" for v, u in zip(fit.offset_um, fit.uncertainty_um, strict=True))
-                + f" µm; tool-axis error ∝ sin A {fit.tilt_um:+.2f} ± {fit.tilt_uncertainty_um:.2f} µm; dot residual "
-                f"rms {fit.residual_rms_um:.2f} µm")
+    summary: dict[str, Any] = {"campaign_id": lake.campaign_id, "captures": {}, "tables": {}}
 
-    # a fresh copy of the compensated phase's workpiece
+    layouts, imaging, first_rows = plan_first_capture(lake, workpiece, seed, orientation)
+    key = content_key(DISPENSE_CODE_VERSION, first_rows.round(9), workpiece.to_dict())[:12]
+    first = _capture(folder / "captures" / f"dispense-{key}", folder, first_rows, workpiece, seed, lake.simulated,
+                     config, logger)
+    summary["captures"]["dispense"] = "requested" if first is None else "measured"
+    if first is None:
+        return summary
+    fit = fit_tip(_table_rows([first], lake.machine, lake.model, full_camera), lake.machine, lake.model)
+
+    # a fresh copy of the compensated phase's workpiece, dispensed with the tip folded in
     check_layout = layouts["compensated"]
-    check_cmd = compensate_task.submit(machine, fit.model, check_layout.commands, orientation).result().commands
+    check_cmd = compensate_task.submit(lake.machine, fit.model, check_layout.commands, orientation).result().commands
     check_rows = plan_rows("check", check_layout.centres, check_layout.surface_z_mm, check_cmd,
                            imaging["compensated"])
     check_key = content_key(DISPENSE_CODE_VERSION, check_rows.round(9), workpiece.to_dict())[:12]
     check = _capture(folder / "captures" / f"dispense-check-{check_key}", folder, check_rows, workpiece, seed + 1,
-                     simulated, config, logger)
-    parts = [first] if check is None else [first, check]
+                     lake.simulated, config, logger)
     summary["captures"]["check"] = "requested" if check is None else "measured"
-    rows = _table_rows(parts, machine, model, full_camera)
+    rows = _table_rows([first] if check is None else [first, check], lake.machine, lake.model, full_camera)
 
-    # the held-out poses, compensated with the tip folded in
-    validation = measurements.stage("validation", camera=CAMERA)
-    ids, commands = validation.table.image_id.tolist(), validation.commands
-    desired = desired_tip_poses(machine, commands)
-    after_tip = compensate_task.submit(machine, fit.model, commands, orientation).result().commands
+    verification, truth_summary = verification_with_tip(lake, root, fit, orientation)
+    if truth_summary is not None:
+        summary["truth"] = truth_summary
+    calib_prov = lake.provenance
     provenance = {"fivecal_version": FIVECAL_VERSION, "campaign": str(folder),
                   "dispense_code": DISPENSE_CODE_VERSION,
                   "workpiece": workpiece.to_dict(), "inspection": config.__dict__,
@@ -159,37 +196,20 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
                   "calibration": {k: calib_prov.get(k) for k in ("effects", "effect_modules", "orientation_objective",
                                                                   "identification_code")},
                   "effect_modules": list(effect_modules or [])}
-    summary["tables"]["dispense_inspection"] = str(write_partition("dispense_inspection", campaign_id, rows,
+    summary["tables"]["dispense_inspection"] = str(write_partition("dispense_inspection", lake.campaign_id, rows,
                                                                    provenance, root))
-    verification = read_table("verification", root, campaign_id)
-    verification = verification[verification["phase"] != "after_tip"].drop(columns="campaign_id", errors="ignore")
-    if simulated:
-        errors = modelled_errors(machine, truth, desired, after_tip)
-        predicted = predicted_by(machine, fit.model, desired)(after_tip)
-        errors = errors.assign(model_predicted_position_um=predicted[0],
-                               model_predicted_orientation_arcsec=predicted[1],
-                               model_predicted_tool_direction_arcsec=predicted[2])
-        new = verification_table({("after_tip", "truth"): (ids, errors)})
-        verification = pd.concat([verification, new], ignore_index=True)
-        compensated_val = compensate_task.submit(machine, model, commands, orientation).result().commands
-        summary["truth"] = {
-            "constant_before_um": constant_tool_frame_error(machine, truth, desired, compensated_val).tolist(),
-            "constant_after_tip_um": constant_tool_frame_error(machine, truth, desired, after_tip).tolist(),
-            "position_after_um": float(
-                modelled_errors(machine, truth, desired, compensated_val)["position_um"].mean()),
-            "position_after_tip_um": float(errors["position_um"].mean()),
-        }
-    ver_prov = {**read_provenance("verification", campaign_id, root), "after_tip": provenance}
+    ver_prov = {**read_provenance("verification", lake.campaign_id, root), "after_tip": provenance}
     for k in ("table", "campaign_id", "schema_version"):
         ver_prov.pop(k, None)
-    summary["tables"]["verification"] = str(write_partition("verification", campaign_id, verification, ver_prov, root))
+    summary["tables"]["verification"] = str(write_partition("verification", lake.campaign_id, verification,
+                                                            ver_prov, root))
 
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
-    out_dir = Path(reports_root) / campaign_id / run / "dispensing"
+    out_dir = Path(reports_root) / lake.campaign_id / run / "dispensing"
     summary.update(tip_offset_um=fit.offset_um.tolist(), tip_offset_uncertainty_um=fit.uncertainty_um.tolist(),
                    tip_fit_dots=fit.dots, tip_fit_residual_rms_um=fit.residual_rms_um,
                    tip_tilt_um=fit.tilt_um, tip_tilt_uncertainty_um=fit.tilt_uncertainty_um,
-                   report=str(write_dispensing_report(out_dir, rows, verification, fit, summary, simulated,
+                   report=str(write_dispensing_report(out_dir, rows, verification, fit, summary, lake.simulated,
                                                      config.__dict__)))
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary

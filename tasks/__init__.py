@@ -1,6 +1,5 @@
-"""The work of fivecal.
+"""The work of fivecal, one sub-package per topic (docs/architecture.md gives the floors and the rules).
 
-Science modules here import no Prefect: a notebook can import them and nothing starts.
-Thin Prefect ``@task`` wrappers live in the ``*_steps`` modules only (``tasks.steps.calibration``,
-``tasks.steps.dispensing``, ...).
+Science modules import no Prefect: a notebook can import them and nothing starts. The Prefect
+``@task`` wrappers live in ``tasks.steps`` only.
 """

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 
 from tasks.detection.conics import (
     ellipse_params,
@@ -227,6 +228,45 @@ def solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
     return x
 
 
+@njit(cache=True, nogil=True)
+def _step_normal_equations(y, dt, z, phi, dens, a, b, m, inv_s, npar, free_slope):  # pragma: no cover - compiled
+    """JᵀJ (P, P, N) and Jᵀr (P, N) of the blurred-step model of :func:`step_fit` for N rays of T
+    samples (arrays (T, N) float32: grey levels, t − t_e, (t − t_e)/s, Φ, φ; (N,) float32: a, b, m,
+    1/s): the Jacobian columns ∂/∂(t_e, a, b, log s) (the first P − 1 of them with ``free_slope``,
+    then ∂/∂m), summed in float32 over the samples in order, one ray at a time."""
+    n_t, n = y.shape
+    one = np.float32(1.0)
+    jtj = np.empty((npar, npar, n))
+    jtr = np.empty((npar, n))
+    col = np.empty(npar, np.float32)
+    sj = np.empty((npar, npar), np.float32)
+    sr = np.empty(npar, np.float32)
+    n_base = npar - 1 if free_slope else npar
+    for k in range(n):
+        c = b[k] - a[k]
+        sj[:] = 0
+        sr[:] = 0
+        for i in range(n_t):
+            ph, de, d = phi[i, k], dens[i, k], dt[i, k]
+            mdt = m[k] * d
+            r = y[i, k] - ((a[k] + c * ph) + mdt * (one - ph))
+            cd = c * de - mdt * de
+            cols4 = ((-cd) * inv_s[k] - m[k] * (one - ph), one - ph, ph, (-cd) * z[i, k])
+            for p in range(n_base):
+                col[p] = cols4[p]
+            if free_slope:
+                col[npar - 1] = d * (one - ph)
+            for p in range(npar):
+                sr[p] += col[p] * r
+                for q in range(p, npar):
+                    sj[p, q] += col[p] * col[q]
+        for p in range(npar):
+            jtr[p, k] = sr[p]
+            for q in range(p, npar):
+                jtj[p, q, k] = jtj[q, p, k] = sj[p, q]
+    return jtj, jtr
+
+
 def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None,
              slope: np.ndarray | None = None, free_slope: bool = False):
     """Per-ray least-squares fit of a blurred step I(t) = a + (b − a) Φ((t − t_e) / s).
@@ -265,19 +305,7 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
         z = dt * inv_s
         phi = _phi(z)
         dens = np.exp(f32(-0.5) * z * z) * f32(0.3989422804014327)
-        c = b - a
-        r = y - (a + c * phi + m * dt * (f32(1.0) - phi))  # (T, N)
-        cd = c * dens - m * dt * dens
-        # Jacobian columns (T, N)
-        cols = [-cd * inv_s - m * (f32(1.0) - phi), f32(1.0) - phi, phi, -cd * z][:n_base]
-        if free_slope:
-            cols.append(dt * (f32(1.0) - phi))
-        jtj = np.empty((npar, npar, len(te)))
-        jtr = np.empty((npar, len(te)))
-        for i in range(npar):
-            jtr[i] = (cols[i] * r).sum(axis=0)
-            for j in range(i, npar):
-                jtj[i, j] = jtj[j, i] = (cols[i] * cols[j]).sum(axis=0)
+        jtj, jtr = _step_normal_equations(y, dt, z, phi, dens, a, b, m, inv_s, npar, free_slope)
         jtj[range(npar), range(npar)] += 1e-9
         step = solve_spd(jtj, jtr)
         lim = np.maximum(1.0, s)  # at most one blur width (or 1 px) per step

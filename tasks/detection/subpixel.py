@@ -236,34 +236,59 @@ def _step_normal_equations(y, dt, z, phi, dens, a, b, m, inv_s, npar, free_slope
     then ∂/∂m), summed in float32 over the samples in order, one ray at a time."""
     n_t, n = y.shape
     one = np.float32(1.0)
+    zero = np.float32(0.0)
+    used = np.empty(npar, np.int64)  # which of the five columns (t_e, a, b, log s, m) are fitted
+    for p in range(npar):
+        used[p] = p
+    if free_slope:
+        used[npar - 1] = 4
     jtj = np.empty((npar, npar, n))
     jtr = np.empty((npar, n))
-    col = np.empty(npar, np.float32)
-    sj = np.empty((npar, npar), np.float32)
-    sr = np.empty(npar, np.float32)
-    n_base = npar - 1 if free_slope else npar
+    sj = np.empty((5, 5), np.float32)
+    sr = np.empty(5, np.float32)
     for k in range(n):
         c = b[k] - a[k]
-        sj[:] = 0
-        sr[:] = 0
+        s00 = s01 = s02 = s03 = s04 = s11 = s12 = s13 = s14 = zero
+        s22 = s23 = s24 = s33 = s34 = s44 = r0 = r1 = r2 = r3 = r4 = zero
         for i in range(n_t):
             ph, de, d = phi[i, k], dens[i, k], dt[i, k]
             mdt = m[k] * d
             r = y[i, k] - ((a[k] + c * ph) + mdt * (one - ph))
             cd = c * de - mdt * de
-            cols4 = ((-cd) * inv_s[k] - m[k] * (one - ph), one - ph, ph, (-cd) * z[i, k])
-            for p in range(n_base):
-                col[p] = cols4[p]
-            if free_slope:
-                col[npar - 1] = d * (one - ph)
-            for p in range(npar):
-                sr[p] += col[p] * r
-                for q in range(p, npar):
-                    sj[p, q] += col[p] * col[q]
+            c0 = (-cd) * inv_s[k] - m[k] * (one - ph)
+            c1 = one - ph
+            c2 = ph
+            c3 = (-cd) * z[i, k]
+            c4 = d * (one - ph)
+            r0 += c0 * r
+            r1 += c1 * r
+            r2 += c2 * r
+            r3 += c3 * r
+            r4 += c4 * r
+            s00 += c0 * c0
+            s01 += c0 * c1
+            s02 += c0 * c2
+            s03 += c0 * c3
+            s04 += c0 * c4
+            s11 += c1 * c1
+            s12 += c1 * c2
+            s13 += c1 * c3
+            s14 += c1 * c4
+            s22 += c2 * c2
+            s23 += c2 * c3
+            s24 += c2 * c4
+            s33 += c3 * c3
+            s34 += c3 * c4
+            s44 += c4 * c4
+        sr[0], sr[1], sr[2], sr[3], sr[4] = r0, r1, r2, r3, r4
+        sj[0, 0], sj[0, 1], sj[0, 2], sj[0, 3], sj[0, 4] = s00, s01, s02, s03, s04
+        sj[1, 1], sj[1, 2], sj[1, 3], sj[1, 4] = s11, s12, s13, s14
+        sj[2, 2], sj[2, 3], sj[2, 4] = s22, s23, s24
+        sj[3, 3], sj[3, 4], sj[4, 4] = s33, s34, s44
         for p in range(npar):
-            jtr[p, k] = sr[p]
+            jtr[p, k] = sr[used[p]]
             for q in range(p, npar):
-                jtj[p, q, k] = jtj[q, p, k] = sj[p, q]
+                jtj[p, q, k] = jtj[q, p, k] = sj[used[p], used[q]]
     return jtj, jtr
 
 

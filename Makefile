@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint bench
+.PHONY: setup demo test lint bench photos
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,7 +17,14 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/fivecal demo
 
-test: $(STAMP)
+PHOTOS := tests/photos/cache/dualCircles.jpg
+
+$(PHOTOS): | $(STAMP)
+	$(VENV)/bin/python tests/photos/fetch.py
+
+photos: $(PHOTOS)
+
+test: $(STAMP) $(PHOTOS)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/pytest -n 2
 

@@ -32,16 +32,9 @@ import cv2
 import numpy as np
 
 from tasks.machine.camera_model import CameraModel
+from tasks.machine.distortion import project_points_ext, undistort_pixels
 from tasks.machine.plate import DotPlate
-from tasks.simulation.render import (
-    ImagingConditions,
-    blur_sigma_px,
-    gain_map,
-    project_points_ext,
-    render_plate_image,
-    true_dot_centres,
-    undistort_pixels,
-)
+from tasks.simulation.render import ImagingConditions, blur_sigma_px, gain_map, render_plate_image, true_dot_centres
 
 DIST = (-0.08, 0.12, 1e-4, -2e-4, -0.05)
 CAM1 = CameraModel(3072, 2048, 0.0024, 16.0, 1535.7, 1023.2, DIST, focus_distance_mm=280.0, f_number=8.0, name="cam1")

@@ -1,6 +1,6 @@
 """Image-based truth for real photographs of a large dot grid, cut down to a 4 × 3 grid.
 
-    .venv/bin/python bench/real_photo_truth.py --out DIR [--variants 1,0.5,1:360x320] NAME=PHOTO...
+    .venv/bin/python bench/real_photo_truth.py --out DIR [--variants 1,0.5,1:360x320] NAME=PHOTO[@X,Y,W,H]...
 
 Each PHOTO is a photograph of a plate of many dark dots in a regular square lattice (e.g. the
 UCL grid of SciKit-Surgery/scikit-surgeryimage, tests/data/calib-ucl-circles, BSD-3-Clause:
@@ -16,6 +16,7 @@ here). Written to DIR per photograph and scale:
   off the axis, dots squeezed by the barrel distortion); the truth is mapped alike, pixel
   centres at integers (through the fisheye the mapped rim centre, not the centre of an ellipse
   fitted to the distorted rim).
+  With ``@X,Y,W,H`` only that window of the photograph is used (e.g. one of two grids in it).
 * ``NAME[_xVARIANT].json``: the truth of the block, row-major like
   :meth:`tasks.machine.plate.DotPlate.dot_centres_mm` for ``DotPlate(rows, cols, ratio, 1)`` along the
   photograph's lattice, px, origin at the centre of the top-left pixel.
@@ -34,6 +35,11 @@ hundredths of a px on these views). Recorded beside it, to judge it:
   (homography times a cubic) fitted to the centroids of the dots around the block
   (:func:`predict_hole`): a check that the labels follow the lattice (a mislabelled dot would be
   a pitch off); it also shows how regular the printed plate and the lens are.
+
+How the image was made is recorded too, so that a test can remake it from the photograph alone:
+``crop_xywh`` (the window of the photograph), ``inpaint_ellipses`` (the regions inpainted, as
+``cv2.ellipse`` boxes (u, v, width, height, angle deg) in that window) and ``window_origin``
+(the W × H crop of the resized image, px, or null).
 
 Regions are found (only found) with :func:`tasks.vision.detection.blobs.contour_candidates` and
 labelled with :func:`tasks.vision.detection.grid.build_lattice`.
@@ -292,9 +298,18 @@ def fisheye_view(img: np.ndarray, block_centre: np.ndarray, half_extent: np.ndar
     return frame, to_frame
 
 
+def inpaint_regions(grey: np.ndarray, boxes: list) -> np.ndarray:
+    """``grey`` with the ellipses ``boxes`` (u, v, width, height, angle deg; px) inpainted from the
+    pixels around them (``cv2.INPAINT_TELEA``, radius 5 px)."""
+    mask = np.zeros(grey.shape, np.uint8)
+    for u, v, w, h, deg in boxes:
+        cv2.ellipse(mask, ((u, v), (w, h), deg), 255, -1)
+    return cv2.inpaint(grey, mask, 5, cv2.INPAINT_TELEA)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("photos", nargs="+", help="NAME=PATH: one photograph")
+    ap.add_argument("photos", nargs="+", help="NAME=PATH[@X,Y,W,H]: one photograph (or that window of it)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--rows", type=int, default=4)
     ap.add_argument("--cols", type=int, default=3)
@@ -307,7 +322,12 @@ def main() -> None:
     radius = 0.5 / args.ratio  # plate units: pitch 1
     for spec in args.photos:
         name, path = spec.split("=", 1)
+        path, _, window = path.partition("@")
         grey = cv2.cvtColor(cv2.imread(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2GRAY)
+        crop_xywh = [int(x) for x in window.split(",")] if window else None
+        if crop_xywh is not None:
+            x, y, w, h = crop_xywh
+            grey = grey[y:y + h, x:x + w]
         found = find_dots(grey, args.ratio, args.rows, args.cols)
         if found is None:
             print(f"{name}: no complete {args.rows}x{args.cols} block of measurable dots")
@@ -320,11 +340,10 @@ def main() -> None:
         to_map = np.linalg.norm(c[block] - predicted, axis=1)  # labelling check: the lattice holds
         keep = np.zeros(len(centres_r), bool)
         keep[region_idx[block]] = True
-        mask = np.zeros(grey.shape, np.uint8)
-        for (u, v), (a, b), th, kk in zip(centres_r, axes_r, theta_r, keep, strict=True):
-            if not kk:  # inpaint every region but the block's dots
-                cv2.ellipse(mask, ((float(u), float(v)), (2.6 * a + 6, 2.6 * b + 6), float(np.degrees(th))), 255, -1)
-        cut = cv2.inpaint(grey, mask, 5, cv2.INPAINT_TELEA)
+        boxes = [(float(u), float(v), float(2.6 * a + 6), float(2.6 * b + 6), float(np.degrees(th)))
+                 for (u, v), (a, b), th, kk in zip(centres_r, axes_r, theta_r, keep, strict=True)
+                 if not kk]  # inpaint every region but the block's dots
+        cut = inpaint_regions(grey, boxes)
         for variant in args.variants.split(","):
             scale_txt, _, rest = variant.partition(":")
             crop_txt, _, lens = rest.partition(":")
@@ -334,7 +353,7 @@ def main() -> None:
                                                     else cv2.INTER_CUBIC)
             sx, sy = img.shape[1] / cut.shape[1], img.shape[0] / cut.shape[0]
             mid = np.array([(c[block, 0].mean() + 0.5) * sx - 0.5, (c[block, 1].mean() + 0.5) * sy - 0.5])
-            to_out = None
+            to_out, origin = None, None
             if crop_txt:
                 w, h = (int(x) for x in crop_txt.split("x"))
                 if lens == "fisheye":
@@ -352,7 +371,9 @@ def main() -> None:
 
             stem = name + ("" if variant == "1" else "_x" + variant.replace(":", "_"))
             cv2.imwrite(str(args.out / f"{stem}.png"), img)
-            truth = {"source": path, "variant": variant, "rows": args.rows, "cols": args.cols,
+            truth = {"source": path, "variant": variant, "crop_xywh": crop_xywh, "inpaint_ellipses": boxes,
+                     "window_origin": None if origin is None else origin.tolist(),
+                     "rows": args.rows, "cols": args.cols,
                      "pitch_over_diameter": args.ratio, "dot_diameter_px": float(np.median(2 * r[block])) * sx,
                      "truth_px": scaled(rim).tolist(), "centroid_px": scaled(c[block]).tolist(),
                      "rim_sloped_px": scaled(rim_sloped).tolist(),

@@ -6,7 +6,8 @@ statistics a lab signs, as Markdown, self-contained HTML and PNG figures. Scienc
 See docs/report.md.
 """
 
-from tasks.report.render import ReportData, write_report
+from tasks.report.data import ReportData
+from tasks.report.render import write_report
 from tasks.report.tables import before_after_table
 
 __all__ = ["ReportData", "before_after_table", "write_report"]

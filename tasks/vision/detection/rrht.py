@@ -27,9 +27,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numba import njit
 
 from tasks.vision.detection.conics import ellipse_params, fit_conic_lsq, is_ellipse, sampson_distance
-from tasks.vision.detection.edges import N_DIRECTIONS, EdgeMap, direction_codes, direction_difference
+from tasks.vision.detection.edges import N_DIRECTIONS, EdgeMap, direction_codes
 
 
 @dataclass
@@ -68,6 +69,64 @@ class CoarseCircles:
                              self.rim_ratio[keep])
 
 
+_COMPILED = {"cache": True, "nogil": True}  # compiled once per machine (see tasks.vision.detection.edge_fit)
+
+
+@njit(**_COMPILED)
+def _code_matches(code: int, target: int, tol: int) -> bool:
+    """An edge pixel (code ≠ 255) whose gradient direction is within ``tol`` codes of ``target``."""
+    if code == 255:
+        return False
+    d = (code - target) % N_DIRECTIONS
+    return min(d, N_DIRECTIONS - d) <= tol
+
+
+@njit(**_COMPILED)
+def _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol):  # pragma: no cover - compiled
+    """Per seed pixel (us, vs (S,) int, unit ``inward`` (S, 2)): the first diameter of ``t_all``
+    (T,) px whose far end, rounded to a pixel of the padded direction-code map ``flat`` (row
+    width ``wp``, padding ``pad``), is an edge pixel whose code is within ``tol`` of
+    ``opposite`` (S,); NaN where none is."""
+    n = us.shape[0]
+    d = np.full(n, np.nan)
+    for i in range(n):
+        for j in range(t_all.shape[0]):
+            t = t_all[j]
+            pu = np.int64(np.rint(us[i] + inward[i, 0] * t)) + pad
+            pv = np.int64(np.rint(vs[i] + inward[i, 1] * t)) + pad
+            if _code_matches(np.int64(flat[pv * wp + pu]), np.int64(opposite[i]), tol):
+                d[i] = t
+                break
+    return d
+
+
+@njit(**_COMPILED)
+def _first_rim_points(centres, radii, cs, sn, steps, ray_code, flat, wp, h, w, pad):  # pragma: no cover
+    """Per candidate (centres (K, 2), radii (K,)) and ray (cos, sin (R,)): the first pixel at
+    ``steps`` (T,) × radius along the ray that is an edge pixel of the padded direction-code map
+    ``flat`` with a code within 45° of ``ray_code`` (R,): (x, y (K, R) px, found (K, R)); where
+    none is found, the ray's first pixel."""
+    k, nr, nt = centres.shape[0], cs.shape[0], steps.shape[0]
+    x = np.empty((k, nr))
+    y = np.empty((k, nr))
+    has = np.zeros((k, nr), np.bool_)
+    for i in range(k):
+        for r in range(nr):
+            for j in range(nt):
+                rad = radii[i] * steps[j]
+                pu = np.int64(np.int32(np.rint(centres[i, 0] + cs[r] * rad)))
+                pv = np.int64(np.int32(np.rint(centres[i, 1] + sn[r] * rad)))
+                if j == 0:
+                    x[i, r], y[i, r] = pu, pv
+                if -pad <= pu < w + pad and -pad <= pv < h + pad:
+                    code = np.int64(flat[(pv + pad) * wp + (pu + pad)])
+                    if _code_matches(code, np.int64(ray_code[r]), N_DIRECTIONS // 8):
+                        x[i, r], y[i, r] = pu, pv
+                        has[i, r] = True
+                        break
+    return x, y, has
+
+
 def _padded(dirs: np.ndarray, pad: int) -> tuple[np.ndarray, int]:
     """Direction-code map padded with 255 (no edge) so that ray lookups need no bounds checks."""
     big = cv2.copyMakeBorder(dirs, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
@@ -98,21 +157,7 @@ def sample_diameters(em: EdgeMap, dirs: np.ndarray, dark_dots: bool, r_min: floa
     flat, wp = _padded(dirs, pad)
     opposite = (dirs[vs, us].astype(np.int16) + N_DIRECTIONS // 2) % N_DIRECTIONS
     tol = int(np.degrees(np.arccos(params.antiparallel_cos)) / (360.0 / N_DIRECTIONS))
-    # walk in chunks of diameters; rays that found their opposite rim stop walking
-    d = np.full(len(vs), np.nan)
-    live = np.arange(len(vs))
-    chunk = 12
-    for c0 in range(0, len(t_all), chunk):
-        t = t_all[c0 : c0 + chunk]
-        pu = np.rint(us[live, None] + inward[live, 0:1] * t[None, :]).astype(np.int32) + pad  # (S, T)
-        pv = np.rint(vs[live, None] + inward[live, 1:2] * t[None, :]).astype(np.int32) + pad
-        code = flat[pv * wp + pu]
-        hit = (code != 255) & (direction_difference(code, opposite[live, None]) <= tol)
-        got = hit.any(axis=1)
-        d[live[got]] = t[np.argmax(hit[got], axis=1)]
-        live = live[~got]
-        if len(live) == 0:
-            break
+    d = _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol)
     has = np.isfinite(d)
     d = d[has]
     p1 = np.stack([us[has], vs[has]], axis=1).astype(float)
@@ -164,28 +209,18 @@ def fit_candidates(dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray, dar
     whose gradient points along the ray (outward for dark dots, within ±45°) is a rim point.
     Returns (centre (K, 2), axes (K, 2), theta (K,), rim_ratio (K,)), NaN where the fit fails.
     """
-    k = len(centres)
     nr = params.n_rays
     ang = np.arange(nr) * (2 * np.pi / nr)
     cs, sn = np.cos(ang), np.sin(ang)
     steps = np.linspace(0.4, 1.7, 27)  # relative to r
-    rad = radii[:, None, None] * steps[None, None, :]  # (K, 1, T)
     pad = int(np.ceil(1.7 * radii.max())) + 2
     flat, wp = _padded(dirs, pad)
-    pu = np.rint(centres[:, 0, None, None] + cs[None, :, None] * rad).astype(np.int32)  # (K, R, T)
-    pv = np.rint(centres[:, 1, None, None] + sn[None, :, None] * rad).astype(np.int32)
-    h, w = dirs.shape
-    on_map = (pu >= -pad) & (pu < w + pad) & (pv >= -pad) & (pv < h + pad)  # a refitted centre may lie far off
-    code = np.where(on_map, flat[np.where(on_map, (pv + pad) * wp + (pu + pad), 0)], 255)
+    h, w = dirs.shape  # a refitted centre may lie far off the map: rays off it find nothing
     ray_code = np.rint(ang * (N_DIRECTIONS / (2 * np.pi))).astype(np.int16)
     if not dark_dots:
         ray_code = (ray_code + N_DIRECTIONS // 2) % N_DIRECTIONS
-    hit = (code != 255) & (direction_difference(code, ray_code[None, :, None]) <= N_DIRECTIONS // 8)
-    has = hit.any(axis=2)  # (K, R)
-    first = np.argmax(hit, axis=2)
-    kk, rr = np.meshgrid(np.arange(k), np.arange(nr), indexing="ij")
-    x = pu[kk, rr, first].astype(float)
-    y = pv[kk, rr, first].astype(float)
+    x, y, has = _first_rim_points(np.ascontiguousarray(centres, dtype=float), np.ascontiguousarray(radii, dtype=float),
+                                  cs, sn, steps, ray_code, flat, wp, h, w, pad)
     scale = np.maximum(radii, 1.0)
     xn = (x - centres[:, 0:1]) / scale[:, None]
     yn = (y - centres[:, 1:2]) / scale[:, None]

@@ -18,6 +18,8 @@ import warnings
 import cv2
 import numpy as np
 
+from tasks.vision.detection.stats import masked_median
+
 INNER_SCALES = (0.0, 0.25, 0.45, 0.65)
 OUTER_SCALES = (1.3, 1.5)
 N_ANGLES = 24
@@ -51,8 +53,8 @@ def dot_fill(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np
     g_out = g_out3.reshape(k, -1)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a candidate with no sample in the image
-        m_in = np.nanmedian(g_in, axis=1)
-        m_out = np.nanmedian(g_out, axis=1)
+        m_in = masked_median(g_in, np.isfinite(g_in))  # NaN without samples
+        m_out = masked_median(g_out, np.isfinite(g_out))
         thr = 0.5 * (m_in + m_out)[:, None]
         sign = 1.0 if dark_dots else -1.0
         dot_side = sign * (thr - g_in) > 0

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from tasks.dispense_job.bead_path import bead_path
@@ -211,3 +212,37 @@ def test_dispense_job_flow_on_a_simulated_tray(calibrated_campaign, prefect_harn
         assert not rows[keys].isna().any().any() and not rows.duplicated(keys).any(), table
     out = tmp_path / "reports" / summary["campaign_id"] / "t" / "dispense-job"
     assert (out / "program-t1-compensated.csv").is_file()
+
+
+def test_dispense_job_command_takes_the_user_effect_modules_to_the_flow(calibrated_campaign, tmp_path, monkeypatch):
+    """``--effect-module``: a module that cannot be imported is a usage error naming the option, before
+    anything runs; an importable one (the documented example family) reaches the flow (which hands it
+    to flows/lake_calibration.py in place of the modules the calibration recorded)."""
+    from typer.testing import CliRunner
+
+    import flows.dispense_job
+    from fivecal.cli import app
+    from tasks.effects import EFFECTS
+
+    seen = {}
+
+    def fake_flow(images, campaign, results, reports, run, phases, effect_modules=None):
+        seen.update(images=images, effect_modules=effect_modules)
+        return {"trays": {}, "beads": pd.DataFrame(), "tables": {}, "report": "r.md"}
+
+    monkeypatch.setattr(flows.dispense_job, "dispense_job", fake_flow)
+    tray = str(tmp_path / "t1.png")
+    campaign = str(calibrated_campaign.campaign)
+    runner = CliRunner()
+    bad = runner.invoke(app, ["dispense-job", tray, "--campaign", campaign, "--effect-module",
+                              str(tmp_path / "nope.py")])
+    assert bad.exit_code == 2 and "--effect-module" in bad.output and seen == {}
+    module = str(Path(__file__).resolve().parents[1] / "docs" / "examples" / "cross_backlash.py")
+    catalogue = dict(EFFECTS)
+    try:
+        good = runner.invoke(app, ["dispense-job", tray, "--campaign", campaign, "--effect-module", module])
+    finally:
+        EFFECTS.clear()
+        EFFECTS.update(catalogue)
+    assert good.exit_code == 0, good.output
+    assert seen == {"images": [tray], "effect_modules": [module]}

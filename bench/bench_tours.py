@@ -7,8 +7,8 @@ tour of the same points being the baseline of the length ratios. Times are wall 
 tables also give the process's CPU time, which other jobs on the machine do not inflate.
 
 1. exact tours for 10…60 points: time (median and worst over seeds), proven optimal, length / NN;
-2. 500 points, uniform and in a tray's pockets: time, the gap to the Held–Karp lower bound,
-   length / NN, the paper's annealing;
+2. 500 points, uniform and in a tray's pockets: time, the gap to the lower bound (the larger of
+   Held–Karp's and the LP bound with subtour and blossom cuts), length / NN, the paper's annealing;
 3. the paper's Table 9 points: every method's length and time, and the travel time of the tour plus
    the beads against the paper's Tables 4 and 8.
 """
@@ -65,7 +65,7 @@ def exact_table(seeds: list[int]) -> None:
 
 
 def large_table(seeds: list[int]) -> None:
-    print("\n2. 500 points: iterated local search + tour merging, gap to the Held–Karp bound")
+    print("\n2. 500 points: iterated local search + tour merging, gap to the lower bound (Held–Karp, LP with cuts)")
     layouts = {
         "uniform": lambda seed: _points(500, seed),
         "tray 25x20, ±3 mm": _tray,

@@ -53,7 +53,9 @@ def dispense_job(
         if "error" in s:
             typer.echo(f"tray {tray}: failed: {s['error']}")
         else:
-            typer.echo(f"tray {tray}: {s['boards']} boards, {s['accepted']} accepted"
+            truth = (f"; against the truth: {s['recognised']} of {s['true_boards']} boards handled correctly"
+                     if "recognised" in s else "")
+            typer.echo(f"tray {tray}: {s['boards']} boards, {s['accepted']} accepted{truth}"
                        + "".join(f"\n  rejected: {r}" for r in s["rejected"]))
     beads = summary["beads"]
     if len(beads):

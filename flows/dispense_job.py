@@ -90,8 +90,12 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
             continue
         results.append(res)
         first = res.areas[res.areas.phase == res.areas.phase.iloc[0]]
-        summary["trays"][tray.tray_id] = {"boards": len(first), "accepted": int(first.ok.sum()),
-                                          "rejected": first.loc[~first.ok, "reason"].tolist()}
+        missed = first.reason == "not found"  # true boards of a simulated tray that were not found
+        summary["trays"][tray.tray_id] = {"boards": int((~missed).sum()), "accepted": int(first.ok.sum()),
+                                          "rejected": first.loc[~first.ok & ~missed, "reason"].tolist()}
+        if first.recognised.notna().any():
+            summary["trays"][tray.tray_id] |= {"recognised": int(first.recognised.sum()), "true_boards":
+                                               int((first.true_defect != "unmatched").sum())}
         for phase, program in res.programs.items():
             write_program(out_dir / f"program-{tray.tray_id}-{phase}.csv", program)
         for phase, rgb in res.dispensed.items():

@@ -293,3 +293,18 @@ def test_a_few_hundred_points_are_planned_within_one_percent_of_their_bound():
     assert sorted(tour.order.tolist()) == list(range(200))
     assert tour.length_mm == pytest.approx(_closed_length(points, tour.order), rel=1e-12)
     assert 0.0 < tour.gap < 0.01
+
+
+def test_a_failed_lp_leaves_the_held_karp_bound(monkeypatch):
+    """When HiGHS gives up on the cut loop's LP, the plan keeps its tour and the Held–Karp bound."""
+    from types import SimpleNamespace
+
+    from tasks.dispense_job import tour_lp_bound
+
+    monkeypatch.setattr(tour_lp_bound, "linprog", lambda *a, **k: SimpleNamespace(status=4, message="numerical"))
+    points = np.random.default_rng(6).uniform(0, 200, (80, 2))
+    tour = plan_tour(points, search_seconds=0.2)
+    dist = distance_matrix(np.vstack([(0.0, 0.0), points]))
+    assert sorted(tour.order.tolist()) == list(range(80))
+    assert 0 < tour.lower_bound_mm <= tour.length_mm
+    assert tour.lower_bound_mm <= held_karp_bound(dist, tour.length_mm).bound_mm * (1 + 1e-9)

@@ -9,8 +9,9 @@ cut) and blossom inequalities, edges whose reduced cost rules them out of any to
 known one are dropped, and the integer program on the rest takes the subtours of its solutions as
 further cuts until the solution is one cycle. That cycle is optimal for the full problem because
 every subtour constraint left out is satisfied by it. Beyond the exact range, iterated local search
-with tour merging gives the tour and the Held–Karp bound (tour_bound.py) states how far from the
-optimum it can be. docs/dispense-job-paths.md has the details."""
+with tour merging gives the tour, and the larger of the Held–Karp bound (tour_bound.py) and the LP
+bound with subtour and blossom cuts (tour_lp_bound.py) states how far from the optimum it can be.
+docs/dispense-job-paths.md has the details."""
 
 from __future__ import annotations
 

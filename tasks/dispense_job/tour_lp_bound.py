@@ -74,7 +74,8 @@ def lp_tour_bound(dist: np.ndarray, tour: np.ndarray, near: np.ndarray, rounds: 
     """Lower bound (mm) on the shortest closed tour through all nodes of the symmetric distance
     matrix ``dist`` (mm): the cut loop of the module docstring on the candidate edges ``near`` (m, k)
     (each node's near nodes) plus the edges of ``tour`` (a good cycle of all nodes), for at most
-    ``rounds`` LPs and about ``seconds`` of wall time (the round under way is finished)."""
+    ``rounds`` LPs and about ``seconds`` of wall time (the round under way is finished). −inf when
+    not even the first LP could be solved."""
     with threadpool_limits(limits=1, user_api="blas"):  # small products: threads only contend
         return _cut_loop(dist, tour, near, rounds, seconds)
 
@@ -95,7 +96,10 @@ def _cut_loop(dist: np.ndarray, tour: np.ndarray, near: np.ndarray, most_rounds:
         rounds += 1
         ei, ej = np.nonzero(np.triu(candidate, 1))
         rhs = handles.sum(axis=0) + (np.array([len(t) for t in teeth]) - 1) / 2.0
-        lp = _solve(dist, ei, ej, m, subtour_sets, handles, teeth, rhs)
+        try:
+            lp = _solve(dist, ei, ej, m, subtour_sets, handles, teeth, rhs)
+        except RuntimeError:  # the solver gave up on this round: the bound so far stands
+            break
         y = lp.eqlin.marginals
         duals = -np.asarray(lp.ineqlin.marginals) if lp.ineqlin.marginals.size else np.zeros(0)
         z = np.maximum(duals[: subtour_sets.shape[1]], 0.0)  # any z, w ≥ 0 keeps the bound valid

@@ -194,6 +194,11 @@ def test_bead_covers_the_usable_area_with_the_shortest_stroke():
     # bead length = stroke + needle inside the paper's measured 4.1–4.4 mm only if the stroke is ~1.6–1.9
     assert np.linalg.norm(end - start) + 2.5 == pytest.approx(4.079, abs=1e-3)
     assert bead_time_s(np.stack([start, end])) == pytest.approx(np.linalg.norm(end - start) / PAPER_BEAD_SPEED_MM_S)
+    # planned for the 2.2 mm bead the glue lays (the paper measured 2.1–2.3 mm wide beads), the bead is
+    # as long as the paper measured (4.1–4.4 mm)
+    glue = bead_path(centre, angle, (4.0, 2.0), needle_mm=2.2)
+    assert np.linalg.norm(glue[1] - glue[0]) == pytest.approx(3.5 - 2 * np.sqrt(1.1**2 - 0.8**2))
+    assert 4.1 < np.linalg.norm(glue[1] - glue[0]) + 2.2 < 4.4
     with pytest.raises(ValueError, match="cannot cover"):
         bead_path(centre, angle, (4.0, 2.0), needle_mm=1.0)
 

@@ -20,20 +20,28 @@ def dispense_job(
     phase: Annotated[list[str] | None, typer.Option(
         help="compensated | nominal | planar (repeatable; default: all three for simulated trays, compensated "
              "otherwise)")] = None,
+    effect_module: Annotated[list[str] | None, typer.Option(
+        help="import a module that registers the user-written effect families the calibration added "
+             "(repeatable; default: the modules the calibration recorded)")] = None,
 ) -> None:
     """Locate the dispensing areas on every tray, map them to the machine, plan beads and the tour, write the
     dispensing program; on simulated trays the virtual machine dispenses and the beads are inspected."""
     from tasks.dispense_job.tray_job import PHASES
+    from tasks.machine.effects import load_effect_modules
 
     bad = [p for p in phase or [] if p not in PHASES]
     if bad:
         raise typer.BadParameter(f"unknown phase(s) {bad}: choose from {', '.join(PHASES)}", param_hint="--phase")
+    try:
+        load_effect_modules(effect_module or [], entry_point_group=None)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--effect-module") from None
 
     def run():
         from flows.dispense_job import dispense_job as flow
 
         return flow([str(i) for i in images], str(campaign), None if results is None else str(results), str(reports),
-                    None, tuple(phase) if phase else None)
+                    None, tuple(phase) if phase else None, effect_modules=list(effect_module or []))
 
     try:
         summary = on_valid_campaign(campaign, run)
@@ -44,7 +52,9 @@ def dispense_job(
         if "error" in s:
             typer.echo(f"tray {tray}: failed: {s['error']}")
         else:
-            typer.echo(f"tray {tray}: {s['boards']} boards, {s['accepted']} accepted"
+            truth = (f"; against the truth: {s['recognised']} of {s['true_boards']} boards handled correctly"
+                     if "recognised" in s else "")
+            typer.echo(f"tray {tray}: {s['boards']} boards, {s['accepted']} accepted{truth}"
                        + "".join(f"\n  rejected: {r}" for r in s["rejected"]))
     beads = summary["beads"]
     if len(beads):

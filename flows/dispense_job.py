@@ -40,10 +40,12 @@ from tasks.steps.dispense_job import JOB_CODE_VERSION, dispense_tray_task, locat
 CAMERA = "camera1"
 
 
-def load_calibration(campaign: Path, root: Path | None) -> Calibration:
+def load_calibration(campaign: Path, root: Path | None, effect_modules: list[str] | None = None) -> Calibration:
     """The calibrated machine of a campaign from the lake (calibrate's cached identification), with
-    the dispensing test's tip offset folded in when it was run; its truth when simulated."""
-    lake = calibration_from_lake(campaign, root)  # calibrate's identification, cached
+    the dispensing test's tip offset folded in when it was run; its truth when simulated.
+    effect_modules: the user modules defining the effect families the calibration added (default:
+    the ones it recorded)."""
+    lake = calibration_from_lake(campaign, root, effect_modules)  # calibrate's identification, cached
     campaign_id, machine, model, truth = lake.campaign_id, lake.machine, lake.model, lake.truth
     notes = [f"identified model of campaign {campaign_id}"]
     try:
@@ -60,13 +62,15 @@ def load_calibration(campaign: Path, root: Path | None) -> Calibration:
 
 @flow(name="dispense-job")
 def dispense_job(images: list[str], campaign: str, results_root: str | None = None, reports_root: str = "reports",
-                 run: str | None = None, phases: tuple[str, ...] | None = None, seed: int = 0) -> dict[str, Any]:
+                 run: str | None = None, phases: tuple[str, ...] | None = None, seed: int = 0,
+                 effect_modules: list[str] | None = None) -> dict[str, Any]:
     """Run the job on tray images with the calibration of ``campaign``; returns a summary (per tray:
     boards found and accepted, or why it failed; the tables and the report). ``phases``: default all
-    three for simulated trays, ``compensated`` alone otherwise."""
+    three for simulated trays, ``compensated`` alone otherwise. ``effect_modules``: as
+    ``fivecal dispense-job --effect-module`` (load_calibration)."""
     logger = get_run_logger()
     root = None if results_root is None else Path(results_root)
-    cal = load_calibration(Path(campaign).resolve(), root)
+    cal = load_calibration(Path(campaign).resolve(), root, effect_modules)
     planners = Planners(plan_tour, travel_time_s, bead_path)
     rules = AcceptanceRules()
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
@@ -86,8 +90,12 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
             continue
         results.append(res)
         first = res.areas[res.areas.phase == res.areas.phase.iloc[0]]
-        summary["trays"][tray.tray_id] = {"boards": len(first), "accepted": int(first.ok.sum()),
-                                          "rejected": first.loc[~first.ok, "reason"].tolist()}
+        missed = first.reason == "not found"  # true boards of a simulated tray that were not found
+        summary["trays"][tray.tray_id] = {"boards": int((~missed).sum()), "accepted": int(first.ok.sum()),
+                                          "rejected": first.loc[~first.ok & ~missed, "reason"].tolist()}
+        if first.recognised.notna().any():
+            summary["trays"][tray.tray_id] |= {"recognised": int(first.recognised.sum()), "true_boards":
+                                               int((first.true_defect != "unmatched").sum())}
         for phase, program in res.programs.items():
             write_program(out_dir / f"program-{tray.tray_id}-{phase}.csv", program)
         for phase, rgb in res.dispensed.items():
@@ -99,7 +107,8 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
     if not results:
         raise ValueError("no tray could be dispensed: " + "; ".join(failures))
     provenance = {"fivecal_version": FIVECAL_VERSION, "campaign": str(campaign), "job_code": JOB_CODE_VERSION,
-                  "images": [str(i) for i in images], "calibration": list(cal.notes), "failures": failures}
+                  "images": [str(i) for i in images], "calibration": list(cal.notes), "failures": failures,
+                  "effect_modules": list(effect_modules or [])}
     tables = {"dispense_areas": areas, "dispense_paths": paths}
     if not beads.empty:
         tables["dispense_beads"] = beads

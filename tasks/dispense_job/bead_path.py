@@ -10,8 +10,10 @@ corners, so each end sits √(r² − (W2/2)²) inside the usable length,
 
     stroke = max(0, W1 − 2·√(r² − (W2/2)²)),
 
-1.58 mm for the paper's numbers: a bead 1.58 + 2.5 = 4.08 mm long (the paper measured 4.1–4.4 mm) laid
-in 1.75 s (its per-board budget: 4 s).
+1.58 mm for the paper's numbers: a bead 1.58 + 2.5 = 4.08 mm long laid in 1.75 s (its per-board
+budget: 4 s). The bead is as wide as the glue spreads, which the paper measured at 2.1–2.3 mm: planned
+with that width as ``needle_mm`` (the job passes the glue's 2.2 mm) the stroke is 1.99 mm and the bead
+4.19 mm long, inside the paper's measured 4.1–4.4 mm.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ def bead_path(
     centre_mm: the area's centre (machine XY, mm); angle_deg: direction of the area's first side,
     counter-clockwise from machine +x; size_mm: (extent along that side, extent across it), mm — the
     long axis is the longer of the two; margin_mm: (kept free at each short end, along each long
-    side). The stroke runs along the long axis through the centre, from its −x end (for a long axis
+    side); needle_mm: the width of the bead laid (the needle's bore by default). The stroke runs
+    along the long axis through the centre, from its −x end (for a long axis
     along ±y: its −y end); its length is the module's formula. A stroke of length 0 (a dot) returns
     A = C."""
     centre = np.asarray(centre_mm, dtype=float).reshape(2)

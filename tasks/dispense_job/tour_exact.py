@@ -9,12 +9,14 @@ cut) and blossom inequalities, edges whose reduced cost rules them out of any to
 known one are dropped, and the integer program on the rest takes the subtours of its solutions as
 further cuts until the solution is one cycle. That cycle is optimal for the full problem because
 every subtour constraint left out is satisfied by it. Beyond the exact range, iterated local search
-with tour merging gives the tour and the Held–Karp bound (tour_bound.py) states how far from the
-optimum it can be. docs/dispense-job-paths.md has the details."""
+with tour merging gives the tour, and the larger of the Held–Karp bound (tour_bound.py) and the LP
+bound with subtour and blossom cuts (tour_lp_bound.py) states how far from the optimum it can be.
+docs/dispense-job-paths.md has the details."""
 
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +25,7 @@ from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 
 from tasks.dispense_job import tour_heuristics as heur
 from tasks.dispense_job.tour_bound import components, distance_matrix, fast_blossoms, global_min_cut, held_karp_bound
+from tasks.dispense_job.tour_lp_bound import lp_tour_bound
 
 EXACT_MAX_POINTS = 60  # the integer program is run up to this many points (home not counted)
 EXACT_SECONDS = 30.0  # beyond this the integer program gives up and the search's tour and bound stand
@@ -31,8 +34,12 @@ NEAR_COUNT = 8  # neighbour-list length of the local search
 LARGE_SEARCH_SECONDS = 10.0  # wall-time cap of the local searches beyond the exact range (a safety net:
 # the kick count ends them first on an unloaded core, and then the tour depends on the seed alone)
 MERGED_RUNS = 8  # independent local searches recombined by tour merging
-KICKS_PER_NODE = 20  # double-bridge kicks of each local search, per node
+KICKS_PER_NODE = 10  # double-bridge kicks of each local search, per node
+SEARCH_THREADS = 2  # the machine's cores: the independent searches run side by side
 MERGE_SECONDS = 2.0  # wall-time cap of the merging integer program; past it the best single run stands
+LP_NEAR_COUNT = 5  # candidate edges per node of the LP bound (tour_lp_bound.py), before pricing
+LP_ROUNDS = 40  # most LPs of its cut loop (it converges in 22–36 on 500 uniform points)
+LP_SECONDS = 5.0  # wall-time cap of the cut loop (a safety net, as LARGE_SEARCH_SECONDS)
 
 
 @dataclass(frozen=True)
@@ -127,12 +134,15 @@ def _as_order(node_tour: np.ndarray) -> np.ndarray:
 
 
 def _good_tour(dist: np.ndarray, seed: int, seconds: float) -> tuple[np.ndarray, float]:
-    """A short tour and the Held–Karp bound (mm). Local search from nearest neighbour gives the upper
-    bound for the bound's ascent; ``MERGED_RUNS`` iterated local searches (``seconds`` shared between
-    them) on neighbour lists ranked by the penalised costs c_ij + π_i + π_j (closer to the optimal
-    tour's edges than plain distance), from nearest-neighbour tours begun at home and at random nodes
-    (different good tours share most edges but not all), are then recombined by the integer program on
-    the union of their edges (tour merging), which is never longer than the best of them."""
+    """A short tour and a lower bound (mm). Local search from nearest neighbour gives the upper bound
+    for the Held–Karp ascent; ``MERGED_RUNS`` iterated local searches (2-opt, Or-opt and the
+    Lin–Kernighan chain move; ``seconds`` shared between them, ``SEARCH_THREADS`` at a time) on
+    neighbour lists ranked by the penalised costs c_ij + π_i + π_j (closer to the optimal tour's edges
+    than plain distance), from nearest-neighbour tours begun at home and at random nodes (different
+    good tours share most edges but not all), are then recombined by the integer program on the union
+    of their edges (tour merging), which is never longer than the best of them. The bound is the larger
+    of Held–Karp's and the LP bound with subtour and blossom cuts (tour_lp_bound.py) around the tour.
+    With ``seconds`` ≤ 0: the first local search and the Held–Karp bound only."""
     n = dist.shape[0]
     start = heur.local_search(dist, heur.near_neighbours(dist, NEAR_COUNT), heur.nearest_neighbour(dist),
                               np.ones(n, np.bool_))
@@ -143,21 +153,23 @@ def _good_tour(dist: np.ndarray, seed: int, seconds: float) -> tuple[np.ndarray,
     near = heur.near_neighbours(dist + pi[:, None] + pi[None, :], NEAR_COUNT)
     firsts = np.random.default_rng(seed).integers(1, n, MERGED_RUNS - 1)
     starts = [start] + [heur.nearest_neighbour(dist, int(first)) for first in firsts]
-    tours = [
-        heur.iterated_local_search(dist, near, begin, kicks=KICKS_PER_NODE * n, seconds=seconds / MERGED_RUNS,
-                                   seed=seed * MERGED_RUNS + run)
-        for run, begin in enumerate(starts)
-    ]
+    with ThreadPoolExecutor(SEARCH_THREADS) as pool:  # the compiled search releases the GIL
+        tours = list(pool.map(
+            lambda run: heur.iterated_local_search(dist, near, starts[run], kicks=KICKS_PER_NODE * n,
+                                                   seconds=seconds * SEARCH_THREADS / MERGED_RUNS,
+                                                   seed=seed * MERGED_RUNS + run),
+            range(MERGED_RUNS)))
     best = min(tours, key=lambda t: heur.tour_length(dist, t))
     edges = np.sort(np.concatenate([np.stack([t, np.roll(t, -1)], axis=1) for t in tours]), axis=1)
     ei, ej = np.unique(edges, axis=0).T
     try:
         merged, _ = shortest_cycle_on_edges(dist, ei, ej, seconds=MERGE_SECONDS)
+        if heur.tour_length(dist, merged) < heur.tour_length(dist, best):
+            best = merged
     except TimeoutError:  # the merge ran out of time: keep the best single run
-        return best, bound.bound_mm
-    if heur.tour_length(dist, merged) < heur.tour_length(dist, best):
-        best = merged
-    return best, bound.bound_mm
+        pass
+    tightened = lp_tour_bound(dist, best, near[:, :LP_NEAR_COUNT], rounds=LP_ROUNDS, seconds=LP_SECONDS)
+    return best, max(bound.bound_mm, tightened.bound_mm)
 
 
 def _by_heuristic(dist: np.ndarray, method: str, seed: int, seconds: float) -> tuple[np.ndarray, float, float]:

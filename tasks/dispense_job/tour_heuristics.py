@@ -208,16 +208,109 @@ def _improve_node(dist: np.ndarray, near: np.ndarray, tour: np.ndarray, pos: np.
     return -1
 
 
+LK_DEPTH = 12  # 2-opt steps in one chain of the Lin–Kernighan move
+
+
+@njit(**_COMPILED)
+def _step_reversal(tour: np.ndarray, pos: np.ndarray, t1: int, t2: int, t3: int) -> tuple[int, int, int]:
+    """One step of the chain: t2 is t1's tour neighbour (the open end of the Hamiltonian path t2 … t1);
+    add t2–t3 and remove the edge from t3 to its neighbour t4 on t2's side, by reversing the stretch
+    t2 … t4. Returns (t4, the reversed positions i, j) so that ``_reverse(tour, pos, i, j)`` undoes it."""
+    n = tour.shape[0]
+    if tour[(pos[t1] + 1) % n] == t2:  # the path runs forward from t2: t4 precedes t3
+        t4 = tour[(pos[t3] - 1) % n]
+        i, j = pos[t2], pos[t4]
+    else:  # the path runs backward from t2: t4 follows t3
+        t4 = tour[(pos[t3] + 1) % n]
+        i, j = pos[t4], pos[t2]
+    _reverse(tour, pos, i, j)
+    return t4, i, j
+
+
+@njit(**_COMPILED)
+def _lin_kernighan(dist: np.ndarray, near: np.ndarray, tour: np.ndarray, pos: np.ndarray, t1: int,
+                   touched: np.ndarray) -> int:
+    """A Lin–Kernighan move from node t1 built of sequential 2-opt steps (Lin & Kernighan 1973):
+    remove t1–t2 (either tour neighbour), then repeatedly join the path's open end t2 to a near node t3
+    and drop t3's edge toward it, while the partial gain stays positive and no edge added in the chain
+    is removed again; every candidate t3 is tried at the first step, the best one at deeper steps, up to
+    ``LK_DEPTH`` steps. The chain is cut back to the step whose closed tour is shortest; it is kept
+    when that is shorter than the start. Returns the number of nodes written to ``touched`` (the
+    chain's end points, to re-examine), 0 when the tour is unchanged."""
+    n = tour.shape[0]
+    if n < 8:
+        return 0
+    undo = np.empty((LK_DEPTH, 2), np.int64)
+    added = np.empty((LK_DEPTH, 2), np.int64)
+    ends = np.empty(LK_DEPTH + 1, np.int64)
+    for side in (1, -1):
+        t2_first = tour[(pos[t1] + side) % n]
+        for first in range(near.shape[1]):
+            t2 = t2_first
+            if tour[(pos[t1] + 1) % n] != t2 and tour[(pos[t1] - 1) % n] != t2:
+                break  # the tour changed under a rolled-back chain: t2_first is stale
+            gain = dist[t1, t2]  # length removed minus length added so far along the path
+            best_gain, best_step, steps = 0.0, 0, 0
+            ends[0] = t2
+            while steps < LK_DEPTH:
+                forward = tour[(pos[t1] + 1) % n] == t2
+                pick, pick_value = -1, -np.inf
+                lo = first if steps == 0 else 0
+                hi = first + 1 if steps == 0 else near.shape[1]
+                for k in range(lo, hi):
+                    t3 = near[t2, k]
+                    g1 = gain - dist[t2, t3]
+                    if g1 <= _EPS:
+                        break  # neighbours are sorted: the rest cost more
+                    if t3 == t1 or t3 == tour[(pos[t2] + 1) % n] or t3 == tour[(pos[t2] - 1) % n]:
+                        continue
+                    t4 = tour[(pos[t3] - 1) % n] if forward else tour[(pos[t3] + 1) % n]
+                    tabu = False
+                    for e in range(steps):
+                        if (added[e, 0] == t3 and added[e, 1] == t4) or (added[e, 0] == t4 and added[e, 1] == t3):
+                            tabu = True
+                    if tabu:
+                        continue
+                    value = dist[t3, t4] - dist[t2, t3]
+                    if value > pick_value:
+                        pick, pick_value = t3, value
+                if pick < 0:
+                    break
+                gain -= dist[t2, pick]
+                added[steps, 0], added[steps, 1] = t2, pick
+                t4, i, j = _step_reversal(tour, pos, t1, t2, pick)
+                undo[steps, 0], undo[steps, 1] = i, j
+                gain += dist[pick, t4]
+                steps += 1
+                ends[steps] = t4
+                t2 = t4
+                closed = gain - dist[t4, t1]
+                if closed > best_gain + _EPS:
+                    best_gain, best_step = closed, steps
+            for s in range(steps - 1, best_step - 1, -1):  # roll back past the best step
+                _reverse(tour, pos, undo[s, 0], undo[s, 1])
+            if best_step > 0:
+                touched[0] = t1
+                for s in range(best_step + 1):
+                    touched[s + 1] = ends[s]
+                for s in range(best_step):
+                    touched[best_step + 2 + s] = added[s, 1]
+                return 2 * best_step + 2
+    return 0
+
+
 @njit(**_COMPILED)
 def local_search(dist: np.ndarray, near: np.ndarray, tour: np.ndarray, dirty: np.ndarray) -> np.ndarray:
-    """2-opt + Or-opt with neighbour lists and don't-look bits, from the nodes flagged in ``dirty``
-    until no move gains. Works in place on ``tour`` (node 0 is rotated back to the front at the end)."""
+    """2-opt + Or-opt, then the Lin–Kernighan chain move where neither gains, with neighbour lists and
+    don't-look bits, from the nodes flagged in ``dirty`` until no move gains. Works in place on ``tour``
+    (node 0 is rotated back to the front at the end)."""
     n = tour.shape[0]
     pos = np.empty(n, np.int64)
     for k in range(n):
         pos[tour[k]] = k
     queue = np.empty(n, np.int64)
     queued = np.zeros(n, np.bool_)
+    touched = np.empty(2 * LK_DEPTH + 2, np.int64)
     head, size = 0, 0
     for v in range(n):
         if dirty[v]:
@@ -232,6 +325,13 @@ def local_search(dist: np.ndarray, near: np.ndarray, tour: np.ndarray, dirty: np
         while True:
             changed = _improve_node(dist, near, tour, pos, a)
             if changed < 0:
+                count = _lin_kernighan(dist, near, tour, pos, a, touched)
+                for t in range(count):
+                    for v in (touched[t], tour[(pos[touched[t]] + 1) % n], tour[(pos[touched[t]] - 1) % n]):
+                        if not queued[v]:
+                            queue[(head + size) % n] = v
+                            queued[v] = True
+                            size += 1
                 break
             for v in (
                 changed,

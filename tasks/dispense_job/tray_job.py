@@ -34,6 +34,7 @@ from tasks.dispense_job.pixel_map import (
     pixels_to_workpiece,
 )
 from tasks.dispense_job.program import Motion, program_rows, program_time_s
+from tasks.dispense_job.recognition import match_found_boards
 from tasks.dispense_job.tray_io import STANDOFF_MM, Tray, camera_spec, tray_spec
 from tasks.dispensing.tip import landing_points
 from tasks.machine.camera_model import CameraModel
@@ -62,7 +63,7 @@ class Calibration:
 class Planners:
     """The path planners (the other half of the job): ``plan_tour(points (n, 2), home_mm, method, seed)``
     → Tour, ``travel_time_s(path (k, 3), speed (3,), accel (3,))`` → s, ``bead_path(centre (2,),
-    angle_deg, size (2,))`` → (k, 2) waypoints."""
+    angle_deg, size (2,), needle_mm=bead width)`` → (k, 2) waypoints."""
 
     plan_tour: Callable
     travel_time_s: Callable
@@ -93,6 +94,23 @@ def area_rows(tray: Tray, located) -> pd.DataFrame:
                      "width_px": r.width_px if r else np.nan, "area_px": b.area.area_px if r else 0})
     return pd.DataFrame(rows, columns=["tray_id", "board_id", "ok", "reason", "u_px", "v_px", "angle_px_deg",
                                        "length_px", "width_px", "area_px"])
+
+
+def with_truth(base: pd.DataFrame, tray: Tray, located, cal: Calibration) -> pd.DataFrame:
+    """``base`` (area_rows) with ``true_defect`` and ``recognised``: for a simulated tray, each found
+    board's centre is mapped onto the tray through the calibrated camera and model and matched to the
+    true boards (tasks.dispense_job.recognition); every true board that no found board matched is one
+    more row (board_id ``missed-`` + its true id, reason ``not found``). Null for a real tray."""
+    if tray.truth is None:
+        return base.assign(true_defect=None, recognised=pd.array([pd.NA] * len(base), dtype="boolean"))
+    uv = np.array([[b.board.rect.u, b.board.rect.v] for b in located.boards]).reshape(-1, 2)
+    xy = pixels_to_workpiece(cal.machine, cal.model, cal.camera, tray.imaging_command, uv, tray.surface_z_mm)
+    defects, correct, missed = match_found_boards(xy, base["ok"].to_numpy(bool), base["reason"].tolist(), tray.truth)
+    extra = pd.DataFrame({"tray_id": tray.tray_id, "board_id": [f"missed-{b}" for b in missed["board_id"]],
+                          "ok": False, "reason": "not found", "area_px": 0,
+                          "true_defect": [d or "none" for d in missed["defect"]], "recognised": False})
+    out = pd.concat([base.assign(true_defect=defects, recognised=correct), extra], ignore_index=True)
+    return out.astype({"ok": bool, "area_px": "int64", "recognised": "boolean"})
 
 
 class PhaseMap:
@@ -166,6 +184,7 @@ def run_tray(tray: Tray, located, cal: Calibration, planners: Planners, phases=P
     base = area_rows(tray, located)
     if base.empty:
         raise ValueError(f"{tray.image_path}: no board found in the image")
+    base = with_truth(base, tray, located, cal)
     areas_out, paths_out, beads_out, programs, dispensed = [], [], [], {}, {}
     for phase in phases:
         pmap = PhaseMap(phase, tray, cal)
@@ -186,8 +205,9 @@ def run_tray(tray: Tray, located, cal: Calibration, planners: Planners, phases=P
             for k, board in enumerate(good.board_id):
                 label = f"{tray.image_path.name} board {board}"
                 try:
-                    path = np.asarray(planners.bead_path(xy[k], float(ang[k]), np.array([length[k], width[k]])),
-                                      float)
+                    # the stroke covers the area with the bead the glue lays (narrower than the needle's bore)
+                    path = np.asarray(planners.bead_path(xy[k], float(ang[k]), np.array([length[k], width[k]]),
+                                                         needle_mm=glue.width_mm), float)
                 except ValueError as e:  # this board's bead cannot be planned: the others go on
                     beads_cmd.append(centres_cmd[k:k + 1])
                     outside[board] = f"no bead path ({e})"

@@ -287,7 +287,12 @@ def _job_area_columns() -> tuple[Column, ...]:
             _c("true_y_mm", "float64", "mm", WORKPIECE, "simulated trays: the true area centre"),
             _c("true_angle_deg", "float64", "deg", WORKPIECE, "simulated trays: the true long axis, [0, 180)"),
             _c("map_error_um", "float64", "um", WORKPIECE,
-               "simulated trays: |where the needle is sent − the true centre| (planar: through the true machine)"))
+               "simulated trays: |where the needle is sent − the true centre| (planar: through the true machine)"),
+            _s("true_defect", "simulated trays: the matched true board's defect: none | broken_edge | "
+                              "missing_component, or unmatched (no true board within 3 mm); null for a real tray"),
+            _c("recognised", "bool", meaning="simulated trays: handled as its truth asks (intact: accepted; "
+                                             "defective: rejected for its defect; a row 'missed-…', reason "
+                                             "'not found', per true board not found); null for a real tray"))
 
 
 def _job_path_columns() -> tuple[Column, ...]:

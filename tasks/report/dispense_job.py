@@ -42,9 +42,18 @@ def recognition_section(areas: pd.DataFrame, failures: list[str]) -> str:
     a = areas[areas.phase == areas.phase.iloc[0]] if len(areas) else areas
     rows = []
     for tray, part in a.groupby("tray_id"):
-        reasons = part.loc[~part.ok, "reason"].str.split(":").str[0].value_counts()
-        rows.append({"tray": tray, "boards found": len(part), "accepted": int(part.ok.sum()),
-                     "rejected": "; ".join(f"{n} × {r}" for r, n in reasons.items()) or "none"})
+        missed = part.reason == "not found"
+        reasons = part.loc[~part.ok & ~missed, "reason"].str.split(":").str[0].value_counts()
+        row = {"tray": tray, "boards found": int((~missed).sum()), "accepted": int(part.ok.sum()),
+               "rejected": "; ".join(f"{n} × {r}" for r, n in reasons.items()) or "none"}
+        if part.recognised.notna().any():  # a simulated tray: scored against its truth
+            wrong = part[~part.recognised.astype(bool)]
+            row |= {"true boards": int((part.true_defect != "unmatched").sum()),
+                    "handled as the truth asks": int(part.recognised.sum()),
+                    "wrong": "; ".join(f"{b} ({d}: {'accepted' if ok else r})" for b, d, ok, r in
+                                       zip(wrong.board_id, wrong.true_defect, wrong.ok, wrong.reason, strict=True))
+                             or "none"}
+        rows.append(row)
     out = f"## Recognition\n\nPaper: {PAPER['recognition']}.\n\n" + _table(pd.DataFrame(rows))
     if failures:
         out += "\nTrays that failed (the others went on):\n\n" + "".join(f"- {f}\n" for f in failures)

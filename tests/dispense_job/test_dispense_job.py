@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from tasks.dispense_job.bead_path import bead_path
@@ -21,7 +22,7 @@ from tasks.dispense_job.pixel_map import (
     pixels_to_workpiece,
 )
 from tasks.dispense_job.program import Motion, program_rows, program_time_s
-from tasks.dispense_job.recognition import score_tray
+from tasks.dispense_job.recognition import match_found_boards, score_tray
 from tasks.dispense_job.tour_exact import plan_tour
 from tasks.dispense_job.travel_time import travel_time_s
 from tasks.dispensing.tip import landing_points
@@ -193,8 +194,9 @@ def test_dispense_job_flow_on_a_simulated_tray(calibrated_campaign, prefect_harn
     summary = dispense_job([str(tray), str(broken)], str(calibrated_campaign.campaign), str(results),
                            str(tmp_path / "reports"), "t", ("compensated", "nominal"))
     assert "not a readable image" in summary["trays"]["broken"]["error"]
-    assert summary["trays"]["t1"] == {"boards": 6, "accepted": 6, "rejected": []}
+    assert summary["trays"]["t1"] == {"boards": 6, "accepted": 6, "rejected": [], "recognised": 6, "true_boards": 6}
     areas = read_table("dispense_areas", results, summary["campaign_id"])
+    assert (areas.true_defect == "none").all() and areas.recognised.all()
     assert set(areas.phase) == {"compensated", "nominal"} and areas.map_error_um.between(0, 500).all()
     paths = read_table("dispense_paths", results, summary["campaign_id"])
     assert set(paths.method) == {"optimal", "annealing", "nearest", "return_to_origin"} and (paths.points == 6).all()
@@ -211,3 +213,52 @@ def test_dispense_job_flow_on_a_simulated_tray(calibrated_campaign, prefect_harn
         assert not rows[keys].isna().any().any() and not rows.duplicated(keys).any(), table
     out = tmp_path / "reports" / summary["campaign_id"] / "t" / "dispense-job"
     assert (out / "program-t1-compensated.csv").is_file()
+
+
+def test_dispense_job_command_takes_the_user_effect_modules_to_the_flow(calibrated_campaign, tmp_path, monkeypatch):
+    """``--effect-module``: a module that cannot be imported is a usage error naming the option, before
+    anything runs; an importable one (the documented example family) reaches the flow (which hands it
+    to flows/lake_calibration.py in place of the modules the calibration recorded)."""
+    from typer.testing import CliRunner
+
+    import flows.dispense_job
+    from fivecal.cli import app
+    from tasks.machine.effects import EFFECTS
+
+    seen = {}
+
+    def fake_flow(images, campaign, results, reports, run, phases, effect_modules=None):
+        seen.update(images=images, effect_modules=effect_modules)
+        return {"trays": {}, "beads": pd.DataFrame(), "tables": {}, "report": "r.md"}
+
+    monkeypatch.setattr(flows.dispense_job, "dispense_job", fake_flow)
+    tray = str(tmp_path / "t1.png")
+    campaign = str(calibrated_campaign.campaign)
+    runner = CliRunner()
+    bad = runner.invoke(app, ["dispense-job", tray, "--campaign", campaign, "--effect-module",
+                              str(tmp_path / "nope.py")])
+    assert bad.exit_code == 2 and "--effect-module" in bad.output and seen == {}
+    module = str(Path(__file__).resolve().parents[1] / "docs" / "examples" / "cross_backlash.py")
+    catalogue = dict(EFFECTS)
+    try:
+        good = runner.invoke(app, ["dispense-job", tray, "--campaign", campaign, "--effect-module", module])
+    finally:
+        EFFECTS.clear()
+        EFFECTS.update(catalogue)
+    assert good.exit_code == 0, good.output
+    assert seen == {"images": [tray], "effect_modules": [module]}
+
+
+def test_found_boards_are_scored_against_the_true_ones_on_the_tray():
+    """Four true boards (intact, broken edge, missing component, one never found) and four found ones
+    (one far from every true board): each found board gets its true board's defect and whether its
+    verdict is the one the truth asks for; the true board nobody found is returned."""
+    truth = pd.DataFrame({"board_id": ["p0", "p1", "p2", "p3"], "board_x_mm": [0.0, 21.0, 42.0, 63.0],
+                          "board_y_mm": [0.0, 0.0, 0.0, 21.0], "defect": ["", "broken_edge", "missing_component", ""]})
+    found = np.array([[0.4, -0.3], [21.2, 0.1], [41.0, 1.5], [30.0, 30.0]])
+    defects, correct, missed = match_found_boards(
+        found, np.array([True, False, True, False]),
+        ["", "broken edge (notch 0.9 mm)", "", "no dispensing area"], truth)
+    assert defects == ["none", "broken_edge", "missing_component", "unmatched"]
+    assert correct == [True, True, False, False]  # a board without its capacitor must not be accepted
+    assert missed["board_id"].tolist() == ["p3"]

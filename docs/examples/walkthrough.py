@@ -27,7 +27,7 @@ import argparse
 import re
 import subprocess
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,13 +61,15 @@ class Story:
     """ladder: one row per (campaign, model) with :data:`COLUMNS`. diagnosis: the hidden-effect campaign's
     diagnosis table of the base model (rank order); after: the same of the refit with the added effect;
     clean_diagnosis: the campaign without the effect's. added: the spec the
-    hidden-effect campaign was refitted with (:func:`added_spec`)."""
+    hidden-effect campaign was refitted with (:func:`added_spec`). trends (images only): camera 1's
+    significant residual trend panels (the ``residual_trends`` table) per "hidden", "after", "clean"."""
 
     ladder: pd.DataFrame
     diagnosis: pd.DataFrame
     after: pd.DataFrame
     clean_diagnosis: pd.DataFrame
     added: str
+    trends: dict[str, pd.DataFrame] = field(default_factory=dict)
 
 
 def noisy(meas: Measurements, seed: int) -> Measurements:
@@ -160,13 +162,19 @@ def image_story(workdir: Path, plan_name: str = "default", seed: int = 7, hidden
         diag = read_table("diagnosis", results)
         return diag[diag.campaign_id == cid].sort_values("rank")
 
+    def trends_of(cid: str) -> pd.DataFrame:
+        t = read_table("residual_trends", results)
+        t = t[(t.campaign_id == cid) & (t.camera == "camera1") & t.significant]
+        return t.sort_values("p_value")[["variable", "component", "span", "p_value"]]
+
     out = _fivecal("diagnose", str(camps / "walk-hidden"), *lake)
-    base = diagnosis_of("walk-hidden")
+    base, trends = diagnosis_of("walk-hidden"), {"hidden": trends_of("walk-hidden")}
     found = re.search(r"^next: fivecal calibrate .* --add-effect '(.*)'$", out, re.M)
     added = added_spec(found.group(1) if found else None, base)
     _fivecal("diagnose", str(camps / "walk-hidden"), "--add-effect", added, *lake)
-    after = diagnosis_of("walk-hidden")
+    after, trends["after"] = diagnosis_of("walk-hidden"), trends_of("walk-hidden")
     _fivecal("diagnose", str(camps / "walk-clean"), *lake)
+    trends["clean"] = trends_of("walk-clean")
     ladder = read_table("model_ladder", results)
     rows = []
     for campaign, cid in (("hidden", "walk-hidden"), ("clean", "walk-clean")):
@@ -177,7 +185,7 @@ def image_story(workdir: Path, plan_name: str = "default", seed: int = 7, hidden
                          "validation_orientation_arcsec": s.validation_orientation_arcsec,
                          "true_tip_after_um": s.compensated_truth_position_um,
                          "true_tip_after_arcsec": s.compensated_truth_orientation_arcsec})
-    return Story(pd.DataFrame(rows, columns=COLUMNS), base, after, diagnosis_of("walk-clean"), added)
+    return Story(pd.DataFrame(rows, columns=COLUMNS), base, after, diagnosis_of("walk-clean"), added, trends)
 
 
 def print_story(story: Story, hidden: str) -> None:
@@ -192,6 +200,9 @@ def print_story(story: Story, hidden: str) -> None:
     print(story.after[cols].head(1).to_string(index=False))
     print("diagnosis of the campaign without the effect, top 1:")
     print(story.clean_diagnosis[cols].head(1).to_string(index=False))
+    for name, t in story.trends.items():
+        print(f"camera1 residual trend panels flagged ({name}): {len(t)}; the first 6 by p:")
+        print(t.head(6).round(4).to_string(index=False))
     print(story.ladder.round(3).to_string(index=False))
 
 

@@ -52,8 +52,8 @@ from tasks.verification_capture import capture_plan
 HIDDEN = "backlash:axis=X,amount_um=10"
 POSE_COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 * ARCSEC) ** 2] * 2 + [(1.15 * ARCSEC) ** 2])
 """Per-pose covariance (m, rad: x, y across camera 1's axis, z along it, tilts, rotation about the axis)."""
-COLUMNS = ["campaign", "model", "sigma2", "cv_rms", "validation_position_um", "validation_orientation_arcsec",
-           "true_tip_after_um", "true_tip_after_arcsec"]
+COLUMNS = ["campaign", "model", "sigma2", "cv_rms", "bic", "validation_position_um", "validation_orientation_arcsec",
+           "noise_floor_position_um", "true_tip_after_um", "true_tip_after_arcsec", "vbm_tip_after_um"]
 
 
 @dataclass
@@ -62,7 +62,9 @@ class Story:
     diagnosis table of the base model (rank order); after: the same of the refit with the added effect;
     clean_diagnosis: the campaign without the effect's. added: the spec the
     hidden-effect campaign was refitted with (:func:`added_spec`). trends (images only): camera 1's
-    significant residual trend panels (the ``residual_trends`` table) per "hidden", "after", "clean"."""
+    significant residual trend panels (the ``residual_trends`` table) per "hidden", "after", "clean".
+    effect_rows (images only): the refit's ``pige`` rows of kind "effect" (value, propagated uncertainty
+    and its parts, truth in the fit's gauge)."""
 
     ladder: pd.DataFrame
     diagnosis: pd.DataFrame
@@ -70,6 +72,7 @@ class Story:
     clean_diagnosis: pd.DataFrame
     added: str
     trends: dict[str, pd.DataFrame] = field(default_factory=dict)
+    effect_rows: pd.DataFrame = field(default_factory=pd.DataFrame)
 
 
 def noisy(meas: Measurements, seed: int) -> Measurements:
@@ -99,9 +102,10 @@ def ladder_row(machine, campaign: str, label: str, result, meas: Measurements, t
     step = ladder_step(machine, result.model, result.pige.fit, meas,
                        cv_rms=cross_validated_rms(machine, result.model, result.pige.specs, meas))
     return {"campaign": campaign, "model": label, "sigma2": step["train_rms"] ** 2, "cv_rms": step["cv_rms"],
-            "validation_position_um": step["validation_position_um"],
+            "bic": step["bic"], "validation_position_um": step["validation_position_um"],
             "validation_orientation_arcsec": step["validation_orientation_arcsec"],
-            "true_tip_after_um": tip[0], "true_tip_after_arcsec": tip[1]}
+            "noise_floor_position_um": step["noise_floor_position_um"],
+            "true_tip_after_um": tip[0], "true_tip_after_arcsec": tip[1], "vbm_tip_after_um": float("nan")}
 
 
 def added_spec(accepted: str | None, table: pd.DataFrame) -> str:
@@ -173,6 +177,9 @@ def image_story(workdir: Path, plan_name: str = "default", seed: int = 7, hidden
     added = added_spec(found.group(1) if found else None, base)
     _fivecal("diagnose", str(camps / "walk-hidden"), "--add-effect", added, *lake)
     after, trends["after"] = diagnosis_of("walk-hidden"), trends_of("walk-hidden")
+    pige = read_table("pige", results, campaign_id="walk-hidden")
+    effect_rows = pige[pige.kind == "effect"][["name", "value", "uncertainty", "uncertainty_fit", "uncertainty_noise",
+                                               "uncertainty_camera", "truth", "note"]]
     _fivecal("diagnose", str(camps / "walk-clean"), *lake)
     trends["clean"] = trends_of("walk-clean")
     ladder = read_table("model_ladder", results)
@@ -180,12 +187,15 @@ def image_story(workdir: Path, plan_name: str = "default", seed: int = 7, hidden
     for campaign, cid in (("hidden", "walk-hidden"), ("clean", "walk-clean")):
         for _, s in ladder[ladder.campaign_id == cid].sort_values("step").iterrows():
             rows.append({"campaign": campaign, "model": f"+ {s.effect_specs}" if s.effect_specs else "base",
-                         "sigma2": s.train_rms**2, "cv_rms": s.cv_rms,
+                         "sigma2": s.train_rms**2, "cv_rms": s.cv_rms, "bic": s.bic,
                          "validation_position_um": s.validation_position_um,
                          "validation_orientation_arcsec": s.validation_orientation_arcsec,
+                         "noise_floor_position_um": s.noise_floor_position_um,
                          "true_tip_after_um": s.compensated_truth_position_um,
-                         "true_tip_after_arcsec": s.compensated_truth_orientation_arcsec})
-    return Story(pd.DataFrame(rows, columns=COLUMNS), base, after, diagnosis_of("walk-clean"), added, trends)
+                         "true_tip_after_arcsec": s.compensated_truth_orientation_arcsec,
+                         "vbm_tip_after_um": s.compensated_vbm_position_um})
+    return Story(pd.DataFrame(rows, columns=COLUMNS), base, after, diagnosis_of("walk-clean"), added, trends,
+                 effect_rows)
 
 
 def print_story(story: Story, hidden: str) -> None:
@@ -200,6 +210,9 @@ def print_story(story: Story, hidden: str) -> None:
     print(story.after[cols].head(1).to_string(index=False))
     print("diagnosis of the campaign without the effect, top 1:")
     print(story.clean_diagnosis[cols].head(1).to_string(index=False))
+    if len(story.effect_rows):
+        print("the added effect's pige rows:")
+        print(story.effect_rows.to_string(index=False))
     for name, t in story.trends.items():
         print(f"camera1 residual trend panels flagged ({name}): {len(t)}; the first 6 by p:")
         print(t.head(6).round(4).to_string(index=False))

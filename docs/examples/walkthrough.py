@@ -8,8 +8,10 @@ Two levels, one table:
   deviations, as docs/examples/context_at_tip_poses.py), the science functions called directly. This is
   what the test (tests/test_walkthrough.py) runs on the small plan.
 - ``images WORKDIR``: the walk-through's commands themselves (``fivecal simulate`` of both campaigns,
-  ``fivecal diagnose``, ``fivecal calibrate --add-effect`` with the printed spec, ``fivecal diagnose`` of
-  the campaign without the effect), then the figures read back from the results lake under WORKDIR.
+  ``fivecal diagnose``, ``fivecal diagnose --add-effect`` with the printed spec (the refit, then its
+  diagnosis), ``fivecal diagnose`` of the campaign without the effect), then the figures read back from
+  the results lake under WORKDIR. A campaign already simulated there is reused, and Prefect's cache
+  serves what has not changed.
 
 Printed per model: the fit's σ² (train RMS², whitened), the model ladder's cross-validated RMS (refit per
 fold of five-axis poses, whitened; 1 at the noise level), the validation tip discrepancy (µm, arcsec) and
@@ -51,7 +53,8 @@ from tasks.verification_capture import capture_plan
 
 HIDDEN = "backlash:axis=X,amount_um=10"
 POSE_COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 * ARCSEC) ** 2] * 2 + [(1.15 * ARCSEC) ** 2])
-"""Per-pose covariance (m, rad: x, y across camera 1's axis, z along it, tilts, rotation about the axis)."""
+"""Per-pose covariance of the plate pose's tangent vector (mm², rad²: x, y across camera 1's axis, z along it,
+the two tilts, the rotation about the axis): 0.21 µm, 0.21 µm, 1.7 µm, 14.7″, 14.7″, 1.15″."""
 COLUMNS = ["campaign", "model", "sigma2", "cv_rms", "bic", "validation_position_um", "validation_orientation_arcsec",
            "noise_floor_position_um", "true_tip_after_um", "true_tip_after_arcsec", "vbm_tip_after_um"]
 
@@ -99,6 +102,9 @@ def true_tip_after(machine, truth: ErrorModel, model: ErrorModel, plan: pd.DataF
 
 
 def ladder_row(machine, campaign: str, label: str, result, meas: Measurements, tip: tuple[float, float]) -> dict:
+    """One row of :data:`COLUMNS` for a calibration ``result`` of ``meas``: the model ladder's figures
+    (:func:`tasks.model_ladder.ladder_step`, its cross-validated RMS refitted per fold) and ``tip``, the
+    (µm, arcsec) of :func:`true_tip_after`."""
     step = ladder_step(machine, result.model, result.pige.fit, meas,
                        cv_rms=cross_validated_rms(machine, result.model, result.pige.specs, meas))
     return {"campaign": campaign, "model": label, "sigma2": step["train_rms"] ** 2, "cv_rms": step["cv_rms"],
@@ -116,8 +122,8 @@ def added_spec(accepted: str | None, table: pd.DataFrame) -> str:
 
 def pose_story(plan_name: str = "small", seed: int = 7, hidden: str = HIDDEN) -> Story:
     """The walk-through at pose level: the campaign of ``plan_name`` and ``seed`` with ``hidden`` and
-    without it (same plan, same noise draw), calibrated; the first diagnosed, refitted with the
-    accepted spec, the refit diagnosed again."""
+    without it (same plan, same noise draw), calibrated and diagnosed; the first refitted with
+    :func:`added_spec` and the refit diagnosed again."""
     machine = load_machine("prototype")
     plan_spec = PLANS[plan_name]()
     plan, _ = plan_campaign(machine, plan_spec, seed)

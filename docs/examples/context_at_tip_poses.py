@@ -1,5 +1,5 @@
-"""Pose-level companion of docs/examples/context_walkthrough.sh (docs/walkthrough.md): the same loop on
-the same plan (``CampaignPlan.context()``: 206 images in two passes an hour apart), exact poses plus
+"""Pose-level companion of docs/examples/context_walkthrough.sh (docs/effects.md, "Measured at the tip"): the
+same loop on the same plan (``CampaignPlan.context()``: 206 images in two passes an hour apart), exact poses plus
 pose noise of the size the small images give (the demo campaign's median pose standard deviations:
 0.21 µm across, 1.7 µm along camera 1's axis, 14.7″ of tilt, 1.15″ about the axis), no images.
 

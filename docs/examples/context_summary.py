@@ -1,10 +1,8 @@
-"""Print the tip errors of the context walk-through (docs/walkthrough.md, "Effects that depend on
-direction, time or a user's own variable"): per campaign, each model-ladder step with its
-cross-validated RMS and the tip error after compensating with that step's model (VBM and truth), the
-true tip error before compensation and how far the hidden effect moves it there (against the clean
-campaign of the same seed, pose by pose), how far the last compensation's true tip sits from the clean
-campaign's, and the ratio of the last step to the clean campaign of the same
-seed.
+"""Print the tip errors of the context walk-through (docs/effects.md, "Measured at the tip"): per campaign,
+each model-ladder step with its cross-validated RMS and the tip error after compensating with that step's
+model (VBM and truth), the true tip error before compensation and how far the hidden effect moves it there
+(against the clean campaign of the same seed, pose by pose), how far the last compensation's true tip sits
+from the clean campaign's, and the ratio of the last step to the clean campaign of the same seed.
 
     python docs/examples/context_summary.py RESULTS_ROOT CAMPAIGN_ID...   # clean-s<seed> are the references
 """

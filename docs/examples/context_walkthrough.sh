@@ -1,5 +1,5 @@
 #!/bin/bash
-# The numbers of docs/walkthrough.md, "Effects that depend on direction, time or a user's own variable".
+# The numbers of docs/effects.md, "Measured at the tip" (image campaigns on the context plan).
 # Usage: docs/examples/context_walkthrough.sh WORKDIR SEED...   (from the repository root, after make setup)
 # Per seed: a clean campaign, a hidden 20 µm/h time-driven thermal drift on X, an 8 µm backlash on Z and
 # the user family docs/examples/cross_backlash.py (8 µm along Y by X's approach), small images, the

@@ -25,12 +25,8 @@ tolerance of the λ search (tests/identification/test_identification.py compares
 The bound (0, n) is in the units of x (mm, or rad for a rotary axis), so it caps the smoothing
 differently per axis (a 50-position sweep keeps at least 7.6 effective degrees of freedom at
 1 mm steps, 3.0 at 0.2 mm, 2.4 at 7.2° and 2.0 at 1°).
-Restricted maximum likelihood over an unbounded span was tried and gave better profiles on most
-axes but worse tips, because it follows the detector's smooth error along the Z sweep
-(docs/calibrate.md, "The smoothers' roughness"); GCV was kept. Charging each degree of freedom
-more in GCV (γ tr H for tr H, γ = 2.5) was tried too: it removes the wave that plain GCV keeps in
-seed 11's A profiles (fit σ² 19.3 → 1.5), and it smooths away real structure of the same strength
-(C's εz in the pose-level diagnosis frame); not kept either (docs/calibrate.md, "Seed 11's σ² of 19").
+Why GCV rather than REML or a GCV that charges each degree of freedom more: docs/history.md
+(2026-11-22, "The PDGE smoothers' roughness" and "Seed 11's σ² of 19").
 """
 
 from __future__ import annotations

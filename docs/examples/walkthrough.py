@@ -6,7 +6,7 @@ Two levels, one table:
 - ``poses`` (default; seconds, no images, no Prefect): the plan's exact poses under the prototype's true
   errors plus pose noise of the size the small images give (the demo campaign's median pose standard
   deviations, as docs/examples/context_at_tip_poses.py), the science functions called directly. This is
-  what the test (tests/test_walkthrough.py) runs on the small plan.
+  what the test (tests/analysis/test_walkthrough.py) runs on the small plan.
 - ``images WORKDIR``: the walk-through's commands themselves (``fivecal simulate`` of both campaigns,
   ``fivecal diagnose``, ``fivecal diagnose --add-effect`` with the printed spec (the refit, then its
   diagnosis), ``fivecal diagnose`` of the campaign without the effect), then the figures read back from

@@ -37,7 +37,7 @@ import pandas as pd
 
 from tasks.analysis.compensation import compensate, desired_tip_poses
 from tasks.analysis.diagnosis import diagnose
-from tasks.analysis.model_ladder import cross_validated_rms, ladder_step
+from tasks.analysis.model_ladder import ladder_step, refit_cross_validated_rms
 from tasks.analysis.verification import tip_errors_with_tool_direction
 from tasks.campaign.capture_request import CAPTURE_GAP_IMAGES, planned_capture_context
 from tasks.core import se3
@@ -108,7 +108,7 @@ def ladder_row(machine, campaign: str, label: str, result, meas: Measurements, t
     (:func:`tasks.analysis.model_ladder.ladder_step`, its cross-validated RMS refitted per fold) and ``tip``, the
     (µm, arcsec) of :func:`true_tip_after`."""
     step = ladder_step(machine, result.model, result.pige.fit, meas,
-                       cv_rms=cross_validated_rms(machine, result.model, result.pige.specs, meas))
+                       cv_rms=refit_cross_validated_rms(machine, result.model, result.pige.specs, meas))
     return {"campaign": campaign, "model": label, "sigma2": step["train_rms"] ** 2, "cv_rms": step["cv_rms"],
             "bic": step["bic"], "validation_position_um": step["validation_position_um"],
             "validation_orientation_arcsec": step["validation_orientation_arcsec"],

@@ -238,7 +238,7 @@ def test_dispense_job_command_takes_the_user_effect_modules_to_the_flow(calibrat
     bad = runner.invoke(app, ["dispense-job", tray, "--campaign", campaign, "--effect-module",
                               str(tmp_path / "nope.py")])
     assert bad.exit_code == 2 and "--effect-module" in bad.output and seen == {}
-    module = str(Path(__file__).resolve().parents[1] / "docs" / "examples" / "cross_backlash.py")
+    module = str(Path(__file__).resolve().parents[2] / "docs" / "examples" / "cross_backlash.py")
     catalogue = dict(EFFECTS)
     try:
         good = runner.invoke(app, ["dispense-job", tray, "--campaign", campaign, "--effect-module", module])

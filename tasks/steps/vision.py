@@ -33,7 +33,7 @@ from tasks.lake.store import read_table
 from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE
 from tasks.machine.plate import DotPlate
-from tasks.vision.pipeline import PRIOR_COLUMNS, calibrate_cameras, content_key, detect_images, plate_poses
+from tasks.vision.pipeline import FIX_K3, PRIOR_COLUMNS, calibrate_cameras, content_key, detect_images, plate_poses
 
 _numeric_lock = threading.Lock()
 _numeric_users = 0
@@ -77,7 +77,7 @@ def _calibrate_key(context: TaskRunContext, p: dict[str, Any]) -> str:
     dots = p["dots"][p["dots"]["image_id"].isin(cal_ids)]
     groups = p["images"][["image_id", "camera", "stage", "group"]]
     return "calibrate-" + content_key(dots, groups, p["metadata"]["cameras"], p["metadata"]["plates"],
-                                      p["metadata"].get("calibration_targets", {}))
+                                      p["metadata"].get("calibration_targets", {}), {"fix_k3": FIX_K3})
 
 
 def _poses_key(context: TaskRunContext, p: dict[str, Any]) -> str:

@@ -44,6 +44,14 @@ from tasks.vision.poses import estimate_poses
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
 # every cache key of the measure flow.
 VISION_CODE_VERSION = "vision-8"
+FIX_K3 = True
+"""Camera self-calibration keeps k3 at 0 (four distortion coefficients). The calibration targets'
+views stay off the field's edges, so k3 is barely determined there (with it free, camera 1's k3 came
+out between −2.8 and +1.4 on the 10-seed panel against a true −0.041, k2 trading off against it) and
+the r⁶ term extrapolates into the part of the field that the X sweep's ends use: the plate's tilt
+about y read there by PnP was off by up to 64″ at X = ±25 mm, which became X's εy profile (and a
+true −0.041 is 1.8·10⁻⁵ of the radius at the field's corner: 0.008 px at the demo size, 0.03 px at
+full size). ``bench/x_sweep_tilt.py`` measures it."""
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
 PRIOR_COLUMNS = tuple(f"prior_h{i}{j}" for i in range(3) for j in range(3))
 """Columns of the predicted plate → image homography that detection takes (:func:`with_detection_inputs`)."""
@@ -214,7 +222,7 @@ def calibrate_cameras(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
         views = trial_views(dots, images, camera, plates[camera])
         if not views:
             continue
-        cal = calibrate_camera(views, nominal, camera=camera)
+        cal = calibrate_camera(views, nominal, camera=camera, fix_k3=FIX_K3)
         joint = pd.DataFrame([cal.joint.to_row()], columns=cal.trials.columns)
         tables.append(pd.concat([cal.trials, joint], ignore_index=True))
         if cal.best_estimate is not None:

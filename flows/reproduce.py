@@ -19,7 +19,7 @@ SYNOPSIS::
 The re-run uses the recorded OpenCV thread count. OpenCV's multi-threaded camera calibration
 differs from call to call by about 1e-6 px, which the identification amplifies to relative
 differences of 1e-4 and more; the measure flow therefore calibrates and estimates poses with one
-OpenCV/BLAS thread (tasks/vision_steps.one_numeric_thread, since commit 70a1d86). Reports made
+OpenCV/BLAS thread (tasks.steps.vision.one_numeric_thread, since commit 70a1d86). Reports made
 before that may not reproduce.
 
 Exit codes of the command: 0 every number reproduced, 1 inputs changed or numbers differ, 2 the

@@ -232,7 +232,7 @@ def self_calibrations(calibrated, calibrate, threads, n=4):
 def test_the_calibration_step_is_bitwise_repeatable_with_two_opencv_threads(calibrated_campaign):
     """The measure flow's calibration task pins OpenCV and BLAS to one thread: same numbers at any setting.
     (OpenCV's multi-threaded calibrateCameraExtended differs by ~1e-6 px from call to call, which the
-    identification amplifies to 1e-4 relative: tasks/vision_steps.one_numeric_thread.)"""
+    identification amplifies to 1e-4 relative: tasks.steps.vision.one_numeric_thread.)"""
     from tasks.steps.vision import calibrate
 
     runs = self_calibrations(calibrated_campaign, calibrate.fn, 2, n=6)

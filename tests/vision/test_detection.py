@@ -1,4 +1,4 @@
-"""Tests of dot-grid detection (tasks/detection): accuracy against renderer truth, ordering,
+"""Tests of dot-grid detection (tasks/vision/detection): accuracy against renderer truth, ordering,
 polarity, clutter, rejection of bad views, baselines, and the maths underneath.
 
 Images come from ``tasks.simulation.render`` (realistic: distortion, defocus, vignetting, gradient, noise) at

@@ -34,7 +34,7 @@ from tasks.dispense_job.tray_io import read_tray
 from tasks.dispense_job.tray_job import PHASES, Calibration, Planners
 from tasks.dispensing.tip import with_tool_offset
 from tasks.lake.store import read_provenance, write_partitions
-from tasks.report.dispense_job import write_report
+from tasks.report.dispense_job import write_dispense_job_report
 from tasks.steps.dispense_job import JOB_CODE_VERSION, dispense_tray_task, locate_task
 
 CAMERA = "camera1"
@@ -114,6 +114,6 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
         tables["dispense_beads"] = beads
     summary["tables"] = {k: str(v) for k, v in write_partitions(tables, cal.campaign_id, provenance, root).items()}
     header = (f"Calibration: {'; '.join(cal.notes)}. Trays: {len(results)} dispensed, {len(failures)} failed.")
-    summary["report"] = str(write_report(out_dir, header, areas, paths, beads, failures))
+    summary["report"] = str(write_dispense_job_report(out_dir, header, areas, paths, beads, failures))
     summary["areas"], summary["paths"], summary["beads"] = areas, paths, beads
     return summary

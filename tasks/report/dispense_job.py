@@ -111,8 +111,8 @@ def bead_section(beads: pd.DataFrame) -> str:
             "true from the simulator.\n\n" + _table(pd.DataFrame(rows)))
 
 
-def write_report(out_dir: Path, header: str, areas: pd.DataFrame, paths: pd.DataFrame, beads: pd.DataFrame,
-                 failures: list[str]) -> Path:
+def write_dispense_job_report(out_dir: Path, header: str, areas: pd.DataFrame, paths: pd.DataFrame,
+                              beads: pd.DataFrame, failures: list[str]) -> Path:
     """Write ``report.md`` into ``out_dir``; returns its path."""
     out_dir.mkdir(parents=True, exist_ok=True)
     text = "\n".join([f"# Dispensing job\n\n{header}\n", recognition_section(areas, failures),

@@ -290,15 +290,14 @@ def calibrate_campaign(campaign: str, results_root: str | None = None, detector:
     tables["model_ladder"] = str(partition_path("model_ladder", c.campaign_id, c.root))
 
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    sentences = diagnosis_sentences(diagnosis, failures["residual_trends"], VALIDATION_CAMERA)
     account = WhereTheModelFails(failures["residuals"], failures["dot_residuals"], failures["residual_trends"],
-                                 ladder, diagnosis)
+                                 ladder, diagnosis, sentences)
     data = calibration_report_data(c.campaign_id, run, result, pige_table, verified.table, verified.compensation,
                                    formulations, c.calibration, _read_optional("detector_comparison", c.root,
                                                                                c.campaign_id),
-                                   c.images, account, c.cameras, VALIDATION_CAMERA,
-                                   {**provenance, "tables": tables}, c.simulated)
+                                   c.images, account, c.cameras, {**provenance, "tables": tables}, c.simulated)
     paths = report_task(Path(reports_root) / c.campaign_id / run, data)
-    sentences = diagnosis_sentences(diagnosis, failures["residual_trends"], VALIDATION_CAMERA)
     logger.info("diagnosis:\n" + "\n".join(sentences))
     means = verified.table.groupby(["phase", "source"])[["position_um", "orientation_arcsec",
                                                          "tool_direction_arcsec"]].mean()

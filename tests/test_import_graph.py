@@ -40,6 +40,12 @@ def modules() -> dict[str, Path]:
     return out
 
 
+@cache
+def trees() -> dict[str, ast.Module]:
+    """{module: its parsed source}, read once for every test."""
+    return {module: ast.parse(path.read_text(), str(path)) for module, path in modules().items()}
+
+
 def _own(name: str) -> str | None:
     """The module of ours that ``name`` (a module or a name inside one) resolves to, else None."""
     mods = modules()
@@ -52,8 +58,8 @@ def _own(name: str) -> str | None:
 def imports() -> dict[str, list[tuple[str, str, int]]]:
     """{module: [(imported name as written, module of ours it resolves to or '', line)]}."""
     out = defaultdict(list)
-    for module, path in modules().items():
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for module, tree in trees().items():
+        for node in ast.walk(tree):
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
@@ -145,8 +151,7 @@ def test_science_imports_no_workflow_library(library):
 
 def test_no_private_name_crosses_a_module():
     offenders = []
-    for module, path in modules().items():
-        tree = ast.parse(path.read_text(), str(path))
+    for module, tree in trees().items():
         aliases = {}
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:

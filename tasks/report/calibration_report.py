@@ -26,6 +26,7 @@ class WhereTheModelFails:
     trends: pd.DataFrame          # the residual_trends table
     ladder: pd.DataFrame          # the campaign's model_ladder table, this run's step included
     diagnosis: Diagnosis
+    sentences: list[str]          # the diagnosis in words (:func:`diagnosis_sentences`)
 
 
 def diagnosis_sentences(diagnosis: Diagnosis, trends: pd.DataFrame, camera: str) -> list[str]:
@@ -41,13 +42,11 @@ def calibration_report_data(campaign_id: str, run: str, result: CalibrationResul
                             verification: pd.DataFrame, compensation: pd.DataFrame, formulations: pd.DataFrame,
                             camera_calibration: pd.DataFrame, detector_comparison: pd.DataFrame | None,
                             images: pd.DataFrame, failures: WhereTheModelFails, cameras: Mapping[str, CameraModel],
-                            camera: str, provenance: dict, simulated: bool) -> ReportData:
+                            provenance: dict, simulated: bool) -> ReportData:
     """Everything the report of a calibration run shows (:func:`tasks.report.render.write_report`).
 
-    ``pige_table``: the identified constants with their propagated uncertainty; ``camera``: the
-    camera whose residuals the diagnosis speaks for; ``provenance``: the run's parameters and the
-    paths of the tables it wrote."""
-    sentences = diagnosis_sentences(failures.diagnosis, failures.trends, camera)
+    ``pige_table``: the identified constants with their propagated uncertainty; ``provenance``: the
+    run's parameters and the paths of the tables it wrote."""
     sections, figures = residual_report(failures.residuals, failures.dot_residuals, failures.ladder, cameras=cameras,
                                         trends=failures.trends, accepted=failures.diagnosis.accepted)
     return ReportData(campaign_id=campaign_id, run=run, pdge=result.pdge.table, pige=pige_table,
@@ -55,4 +54,5 @@ def calibration_report_data(campaign_id: str, run: str, result: CalibrationResul
                       detector_comparison=detector_comparison, formulations=formulations,
                       identifiability=null_space_sentences(result.pige.specs, result.pige.fit),
                       provenance=provenance, simulated=simulated, images=images, compensation=compensation,
-                      extra_sections=[(DIAGNOSIS_TITLE, "\n\n".join(sentences)), *sections], extra_figures=figures)
+                      extra_sections=[(DIAGNOSIS_TITLE, "\n\n".join(failures.sentences)), *sections],
+                      extra_figures=figures)

@@ -10,7 +10,7 @@ rejected board is a row with its reason and the tray goes on without it.
 
 Writes the ``dispense_areas``, ``dispense_paths`` and ``dispense_beads`` tables (partition: the
 calibrated campaign) and ``<reports>/<campaign_id>/<run>/dispense-job/`` (report.md, programs,
-images of the dispensed trays).
+images of the dispensed trays), published whole: a failed run leaves no half-written folder.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import cv2
 import pandas as pd
 from prefect import flow, get_run_logger
 
@@ -27,7 +26,6 @@ from flows.lake_calibration import calibration_from_lake
 from tasks.core.version import FIVECAL_VERSION
 from tasks.dispense_job.area_acceptance import AcceptanceRules
 from tasks.dispense_job.bead_path import bead_path
-from tasks.dispense_job.program import write_program
 from tasks.dispense_job.tour_exact import plan_tour
 from tasks.dispense_job.travel_time import travel_time_s
 from tasks.dispense_job.tray_io import read_tray
@@ -75,7 +73,7 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
     rules = AcceptanceRules()
     run = run or datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
     out_dir = Path(reports_root) / cal.campaign_id / run / "dispense-job"
-    out_dir.mkdir(parents=True, exist_ok=True)
+    programs, dispensed = {}, {}
     results, failures, summary = [], [], {"campaign_id": cal.campaign_id, "trays": {}, "tables": {}}
     for image in images:
         try:
@@ -96,10 +94,8 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
         if first.recognised.notna().any():
             summary["trays"][tray.tray_id] |= {"recognised": int(first.recognised.sum()), "true_boards":
                                                int((first.true_defect != "unmatched").sum())}
-        for phase, program in res.programs.items():
-            write_program(out_dir / f"program-{tray.tray_id}-{phase}.csv", program)
-        for phase, rgb in res.dispensed.items():
-            cv2.imwrite(str(out_dir / f"dispensed-{tray.tray_id}-{phase}.png"), rgb[..., ::-1])
+        programs |= {f"program-{tray.tray_id}-{phase}": program for phase, program in res.programs.items()}
+        dispensed |= {f"dispensed-{tray.tray_id}-{phase}": rgb for phase, rgb in res.dispensed.items()}
     areas = pd.concat([r.areas for r in results], ignore_index=True) if results else pd.DataFrame()
     paths = pd.concat([r.paths for r in results], ignore_index=True) if results else pd.DataFrame()
     beads = pd.concat([r.beads for r in results if not r.beads.empty], ignore_index=True) \
@@ -114,6 +110,7 @@ def dispense_job(images: list[str], campaign: str, results_root: str | None = No
         tables["dispense_beads"] = beads
     summary["tables"] = {k: str(v) for k, v in write_partitions(tables, cal.campaign_id, provenance, root).items()}
     header = (f"Calibration: {'; '.join(cal.notes)}. Trays: {len(results)} dispensed, {len(failures)} failed.")
-    summary["report"] = str(write_dispense_job_report(out_dir, header, areas, paths, beads, failures))
+    summary["report"] = str(write_dispense_job_report(out_dir, header, areas, paths, beads, failures,
+                                                               programs, dispensed))
     summary["areas"], summary["paths"], summary["beads"] = areas, paths, beads
     return summary

@@ -10,8 +10,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
+
+from tasks.dispense_job.program import write_program
+from tasks.report.publish import publish_report
 
 PAPER = {
     "tour": "20 boards: 1670.2 mm → 946.8 mm (Table 4 group averages 1654.9–1713.4 → 940.1–959.8 mm)",
@@ -112,13 +116,22 @@ def bead_section(beads: pd.DataFrame) -> str:
 
 
 def write_dispense_job_report(out_dir: Path, header: str, areas: pd.DataFrame, paths: pd.DataFrame,
-                              beads: pd.DataFrame, failures: list[str]) -> Path:
-    """Write ``report.md`` into ``out_dir``; returns its path."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+                              beads: pd.DataFrame, failures: list[str],
+                              programs: dict[str, pd.DataFrame] | None = None,
+                              images: dict[str, np.ndarray] | None = None) -> Path:
+    """Publish the job's report folder at ``out_dir`` whole (:func:`tasks.report.publish.publish_report`):
+    ``report.md``, ``index.html``, each program as ``<name>.csv`` (:func:`write_program`) and each
+    image of a dispensed tray as ``<name>.png`` (RGB arrays). Returns the path of ``report.md``."""
     text = "\n".join([f"# Dispensing job\n\n{header}\n", recognition_section(areas, failures),
                       mapping_section(areas), path_section(paths), bead_section(beads),
                       f"## Recognition over many boards, repeatability\n\n{PAPER['recognition']}; "
                       f"{PAPER['repeatability']}. Ours: `python bench/bench_locate.py` (docs/dispense-job.md).\n"])
-    path = out_dir / "report.md"
-    path.write_text(text)
-    return path
+
+    def write_files(folder: Path) -> None:
+        for name, program in (programs or {}).items():
+            write_program(folder / f"{name}.csv", program)
+        for name, rgb in (images or {}).items():
+            if not cv2.imwrite(str(folder / f"{name}.png"), np.ascontiguousarray(rgb[..., ::-1])):
+                raise OSError(f"could not write {folder / name}.png")
+
+    return publish_report(out_dir, "Dispensing job", lambda _figures: text, write_files)["markdown"]

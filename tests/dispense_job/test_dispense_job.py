@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import pytest
@@ -212,7 +213,9 @@ def test_dispense_job_flow_on_a_simulated_tray(calibrated_campaign, prefect_harn
         rows, keys = read_table(table, results, summary["campaign_id"]), list(TABLES[table].keys[1:])
         assert not rows[keys].isna().any().any() and not rows.duplicated(keys).any(), table
     out = tmp_path / "reports" / summary["campaign_id"] / "t" / "dispense-job"
-    assert (out / "program-t1-compensated.csv").is_file()
+    assert (out / "program-t1-compensated.csv").is_file() and (out / "index.html").is_file()
+    assert cv2.imread(str(out / "dispensed-t1-nominal.png")).shape[2] == 3
+    assert not list(out.parent.glob(".dispense-job.tmp-*"))  # published whole: no staging folder left
 
 
 def test_dispense_job_command_takes_the_user_effect_modules_to_the_flow(calibrated_campaign, tmp_path, monkeypatch):

@@ -10,7 +10,7 @@ SYNOPSIS::
 Layout (design §4)::
 
     <root>/<table>/campaign_id=<id>/part-0.parquet
-    <root>/.staging/                     partitions being written (outside every table's glob)
+    <root>/.staging/                     partitions being written, a step's swap journal (outside every table's glob)
 
 Schemas: ``tasks.lake.schema`` registers every table's columns, keys and schema version
 (docs/results-schema.md).
@@ -52,6 +52,7 @@ import hashlib
 import json
 import os
 import re
+import secrets
 import shutil
 import socket
 import tempfile
@@ -65,6 +66,7 @@ import pyarrow.parquet as pq
 
 from tasks.core.atomic_io import atomic_write_parquet, current_umask, fsync_path, swap_in_folder
 from tasks.lake import schema as lake_schema
+from tasks.lake.journal import WRITE_ID_KEY, complete_interrupted, journal_path, write_journal
 
 DEFAULT_RESULTS_DIR = Path("data/results")
 RESULTS_DIR_ENV = "FIVECAL_RESULTS_DIR"
@@ -117,19 +119,31 @@ def write_partitions(tables: dict[str, pd.DataFrame], campaign_id: str, provenan
 
     Every partition is written and fsync'd in the staging area before the first is swapped in,
     so an error while preparing or writing any of them (a bad column, a full disk) leaves all the
-    tables as they were; the swaps then follow back to back (renames, microseconds each).
+    tables as they were; the swaps then follow back to back (renames, microseconds each). A kill
+    between two swaps leaves a journal (:mod:`tasks.lake.journal`): the next write to the lake on
+    this host completes the swaps first, so the step's tables end all new.
     """
-    staging_root = results_root(root) / STAGING_DIR
+    lake_root = results_root(root)
+    staging_root = lake_root / STAGING_DIR
     staging_root.mkdir(parents=True, exist_ok=True)
+    complete_interrupted(lake_root, staging_root, PART_FILE, _is_dead_writer)
     _clean_staging(staging_root)
     staged: list[tuple[Path, Path]] = []
+    write_id = secrets.token_hex(8) if len(tables) > 1 else None
+    journal = None
     try:
         for table_name, df in tables.items():
-            staged.append(_stage(table_name, campaign_id, df, provenance, root, staging_root))
+            meta = provenance if write_id is None else {**provenance, WRITE_ID_KEY: write_id}
+            staged.append(_stage(table_name, campaign_id, df, meta, root, staging_root))
+        if write_id is not None:
+            journal = journal_path(staging_root, _writer_prefix(campaign_id), write_id)
+            write_journal(journal, lake_root, write_id, staged)
         for staging, dest in staged:
             dest.parent.mkdir(parents=True, exist_ok=True)
             swap_in_folder(staging, dest)
             fsync_path(dest.parent)  # the swap itself
+        if journal is not None:
+            journal.unlink()
         fsync_path(staging_root)
     finally:
         for staging, _ in staged:  # the old partitions after the swaps, or the new ones after an error
@@ -148,7 +162,7 @@ def _stage(table_name: str, campaign_id: str, df: pd.DataFrame, provenance: dict
                              f"in the partition of {campaign_id}")
         df = df.drop(columns=PARTITION_COLUMN)
     df = lake_schema.conform(table_name, df)
-    prefix = f"{table_name}.{campaign_id}.pid{os.getpid()}.{_host_tag()}."
+    prefix = f"{table_name}.{_writer_prefix(campaign_id)}"
     staging = Path(tempfile.mkdtemp(dir=staging_root, prefix=prefix))
     try:
         os.chmod(staging, 0o777 & ~current_umask())  # mkdtemp's folder is private (0700)
@@ -161,6 +175,17 @@ def _stage(table_name: str, campaign_id: str, df: pd.DataFrame, provenance: dict
     return staging, dest
 
 
+def _writer_prefix(campaign_id: str) -> str:
+    """``<campaign_id>.pid<pid>.<host tag>.``: names what this process leaves in ``.staging``."""
+    return f"{campaign_id}.pid{os.getpid()}.{_host_tag()}."
+
+
+def _is_dead_writer(name: str) -> bool:
+    """True for a ``.staging`` entry of a writer on this host that is no longer running."""
+    m = _STAGING.search(name)
+    return m is not None and m.group(2) == _host_tag() and not _alive(int(m.group(1)))
+
+
 def _host_tag() -> str:
     return hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
 
@@ -169,12 +194,9 @@ def _clean_staging(staging_root: Path) -> None:
     """Remove the staging folders of writers on this host that are no longer running (killed
     mid-write). Folders of live writers, of other hosts and the ``.old`` folder of the
     two-rename fallback (possibly the only copy of a partition) are left alone."""
-    host = _host_tag()
     for entry in staging_root.iterdir():
-        m = _STAGING.search(entry.name)
-        if m is None or m.group(2) != host or _alive(int(m.group(1))):
-            continue
-        shutil.rmtree(entry, ignore_errors=True)
+        if entry.is_dir() and _is_dead_writer(entry.name):
+            shutil.rmtree(entry, ignore_errors=True)
 
 
 def _alive(pid: int) -> bool:

@@ -108,3 +108,52 @@ def test_a_writer_killed_among_repeated_replacements_leaves_one_whole_version(tm
     assert version >= 1 and len(df) == rows
     assert (df["v_px"] == version).all() and (df["col"] == version).all()
     assert df["u_px"].to_numpy() == pytest.approx(np.random.default_rng(version).random(rows), rel=0, abs=0)
+
+
+STEP_CHILD = """
+import os, sys
+import pandas as pd
+import tasks.lake.store as store
+root = sys.argv[1]
+swaps = []
+real_swap = store.swap_in_folder
+def swap_then_die(new, dest):
+    if swaps:
+        os._exit(9)  # killed between the step's first and second swap
+    swaps.append(dest)
+    real_swap(new, dest)
+store.swap_in_folder = swap_then_die
+dots = pd.DataFrame({"image_id": ["a", "b"], "camera": "camera1", "row": [0, 1], "col": 2, "u_px": 1.0,
+                     "v_px": 2.0, "residual_rms_px": 0.01, "support_ratio": 1.0, "detector": "rrht"})
+cal = pd.DataFrame({"camera": ["camera1"], "trial": ["joint"], "status": ["ok"], "message": [""]})
+store.write_partitions({"dots": dots, "camera_calibration": cal}, "c1", {"run": "new"}, root)
+"""
+
+
+def test_a_writer_killed_between_a_steps_swaps_is_completed_by_the_next_write(tmp_path):
+    """A step writes two tables; its writer dies after the first swap. Its tables are a mix (dots new,
+    camera_calibration old) until the next write to the lake, which finishes the step from the
+    journal: both new, the staging area empty. A second recovery changes nothing."""
+    root = tmp_path / "results"
+    write_partition("dots", "c1", pd.DataFrame({"image_id": ["x"], "camera": "camera2", "row": 5, "col": 5,
+                                                "u_px": 0.0, "v_px": 0.0, "residual_rms_px": 0.0,
+                                                "support_ratio": 1.0, "detector": "blob"}), {"run": "old"}, root)
+    old_calibration = pd.DataFrame({"camera": ["camera2"], "trial": ["t0"], "status": ["old"], "message": [""]})
+    write_partition("camera_calibration", "c1", old_calibration, {"run": "old"}, root)
+    child = subprocess.run([sys.executable, "-c", STEP_CHILD, str(root)], cwd=REPO, capture_output=True, text=True,
+                           env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert child.returncode == 9, child.stderr
+    staging = root / STAGING_DIR
+    assert read_provenance("dots", "c1", root)["run"] == "new"
+    assert read_provenance("camera_calibration", "c1", root)["run"] == "old"  # the mix a kill leaves
+    assert len(list(staging.glob("*.journal"))) == 1
+
+    write_partition("images", "other", pd.DataFrame({"image_id": ["i"]}), {"run": "unrelated"}, root)
+    assert read_provenance("camera_calibration", "c1", root)["run"] == "new"
+    assert read_table("camera_calibration", root).status.tolist() == ["ok"]
+    assert read_table("dots", root).image_id.tolist() == ["a", "b"]
+    assert list(staging.iterdir()) == []
+
+    write_partition("images", "other", pd.DataFrame({"image_id": ["j"]}), {"run": "again"}, root)
+    assert read_table("dots", root).image_id.tolist() == ["a", "b"]
+    assert read_provenance("camera_calibration", "c1", root)["run"] == "new"

@@ -9,8 +9,11 @@ Frames: image px (u right, v down). Plate rows/cols as in :class:`tasks.machine.
    predicted one local step away; the local step vectors are carried along, so perspective
    (steps shrinking across the plate) is followed. Points off the lattice (clutter) are
    never reached.
-3. *Window*: the rows × cols (or cols × rows) window of the lattice must be complete and unique;
-   otherwise the view is rejected with a reason (out of view, missing dots, extra dots) — unless
+3. *Window*: the rows × cols (or cols × rows) window of the lattice must be complete and unique,
+   and every 2 × 2 cell of it close to a parallelogram (a stray blob that won a dot's claim is
+   replaced by the candidate that closes it, :mod:`tasks.vision.detection.lattice_check`);
+   otherwise the view is rejected with a reason (out of view, missing dots, extra dots,
+   irregular lattice) — unless
    the dots' expected positions are given, when a plate partly out of the image is labelled by
    them (:mod:`tasks.vision.detection.partial_view`) and step 4 is not needed.
 4. *Orientation*: of the 8 symmetries of a rectangle, the physical handedness (the camera looks
@@ -30,6 +33,7 @@ from scipy.spatial import cKDTree
 
 from tasks.machine.plate import DotPlate
 from tasks.vision.detection.grid_order import GridOrder, fail_order, lattice_steps, rotation_deg
+from tasks.vision.detection.lattice_check import check_window
 from tasks.vision.detection.partial_view import order_by_prior
 
 __all__ = ["GridOrder", "build_lattice", "order_grid", "reduce_lattice"]
@@ -269,7 +273,9 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     if strays >= max(2, (min(rows, cols) + 1) // 2):
         return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
                                  f"window ({shape_txt} lattice)", (hh, ww))
-    win = occ[a0 : a0 + h, b0 : b0 + w]
+    win, irregular = check_window(points, sizes, occ[a0 : a0 + h, b0 : b0 + w])
+    if irregular:
+        return fail_order(plate, irregular, (hh, ww))
     ab = np.stack(np.meshgrid(np.arange(h), np.arange(w), indexing="ij"), axis=-1).reshape(-1, 2)
     pidx = win.reshape(-1)
     pts = points[pidx]

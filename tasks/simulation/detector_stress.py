@@ -247,6 +247,12 @@ STRESS_CASES: tuple[StressCase, ...] = (
                jpeg=85, colour=True, seed=13),
     StressCase("light-tilt", 1280, 960, 50.0, tilt_deg=40.0, tilt_azimuth_deg=120.0, dark_dots=False,
                clutter=20, texture=True, colour=True, jpeg=85, seed=10),
+    # an evenly lit page filling the frame: the 12 dots are under 1 % of the pixels, the grey range
+    # is the paper's noise (as in real photographs of a small grid on a large sheet)
+    StressCase("page-15px", 640, 480, 15.0, tilt_deg=10.0, spin_deg=5.0, jpeg=85, colour=True, gradient=0.0,
+               vignetting=0.0, plate=replace(ISSUE_PLATE, margin_mm=400.0), seed=14),
+    StressCase("page-12mp", 3024, 4032, 60.0, tilt_deg=5.0, jpeg=85, colour=True, gradient=0.0, vignetting=0.0,
+               plate=replace(ISSUE_PLATE, margin_mm=400.0), seed=15),
 )
 """The stress set: names say what each case stresses."""
 

@@ -4,6 +4,7 @@
     .venv/bin/python bench/bench_stress.py --seeds 3       # each case with 3 seeds (other noise, clutter)
     .venv/bin/python bench/bench_stress.py --case fisheye  # one case (repeatable)
     .venv/bin/python bench/bench_stress.py --random 200    # random cases: found / refused / wrongly labelled
+    .venv/bin/python bench/bench_stress.py --random 80 --fisheye   # random fisheye frames (random_fisheye_case)
 
 Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
 then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
@@ -45,7 +46,13 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tasks.machine.plate import DotPlate
-from tasks.simulation.detector_stress import STRESS_CASES, errors_up_to_symmetry, random_case, render_stress_case
+from tasks.simulation.detector_stress import (
+    STRESS_CASES,
+    errors_up_to_symmetry,
+    random_case,
+    random_fisheye_case,
+    render_stress_case,
+)
 from tasks.vision.detection import detect_grid
 
 DETECTORS = ("rrht", "blob", "hough", "cv2", "cv2+clustering")
@@ -76,14 +83,15 @@ def match_errors(found: np.ndarray | None, truth: np.ndarray, dot_px: float) -> 
     return d
 
 
-def random_run(n: int, seed: int) -> None:
+def random_run(n: int, seed: int, fisheye: bool = False) -> None:
     """Random stress cases: found / refused / wrong for RRHT and cv2.findCirclesGrid with clustering."""
     rng = np.random.default_rng(seed)
     counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in ("rrht", "cv2+clustering")}
     errs: dict[str, list[float]] = {d: [] for d in counts}
     n_cases = 0
+    draw = random_fisheye_case if fisheye else random_case
     for i in range(n):
-        case = random_case(rng, f"random-{i}")
+        case = draw(rng, f"random-{i}")
         if case is None:
             continue
         n_cases += 1
@@ -121,9 +129,11 @@ def main() -> None:
     ap.add_argument("--case", action="append", help="only these cases (repeatable)")
     ap.add_argument("--random", type=int, default=0, help="draw this many random cases instead")
     ap.add_argument("--random-seed", type=int, default=0)
+    ap.add_argument("--fisheye", action="store_true", help="random cases through the fisheye lens "
+                    "(detector_stress.random_fisheye_case) instead")
     args = ap.parse_args()
     if args.random:
-        random_run(args.random, args.random_seed)
+        random_run(args.random, args.random_seed, args.fisheye)
         return
     cases = [c for c in STRESS_CASES if not args.case or c.name in args.case]
     print(f"cv2 {cv2.__version__}, cv2 threads {cv2.getNumThreads()}; {len(cases)} cases × {args.seeds} seeds, "

@@ -34,6 +34,7 @@ def _plate(case):
 @pytest.mark.parametrize(("case", "median_px", "max_px"), [
     (CASES["fisheye"], 0.3, 0.8),
     (CASES["fisheye-light"], 0.3, 0.8),
+    (CASES["fisheye-steps"], 0.3, 0.8),  # steps growing by a third per row (before: "missing dots")
     (CASES["distant-15px"], 0.05, 0.1),
     (CASES["distant-8px"], 0.05, 0.1),
     (CASES["tilt-50"], 0.05, 0.1),

@@ -127,7 +127,12 @@ def _grow(points, tree, seed, steps, has, sizes):
     query per frontier); a point within 30 % of a step of a prediction joins the lattice (first
     claim wins) and inherits the local steps, updated along the direction it was reached by (and
     its opposite). The four directions keep their own steps: under strong lens distortion the
-    step to one side of a dot can be half as long again as the step to the other.
+    step to one side of a dot can be half as long again as the step to the other. Where the carried
+    step finds no point, the place is predicted from the lattice around it instead, to second order
+    where three places behind it are filled (:func:`_second_order_steps`): perspective and a fisheye
+    change the step from one dot to the next by a third and more, beyond the 30 % a carried step
+    allows. When the frontier is empty every point is expanded once more, with the lattice then
+    known around it.
     """
     n = len(points)
     mn = np.zeros((n, 2), int)
@@ -140,16 +145,28 @@ def _grow(points, tree, seed, steps, has, sizes):
     frontier = np.array([seed])
     axis_of = np.array([0, 0, 1, 1])
     sign_of = np.array([1.0, -1.0, 1.0, -1.0])
+    at = {(0, 0): seed}  # lattice coordinates → point
+    revisit = True
     while len(frontier):
         f = np.repeat(frontier, 4)  # (F*4,)
         k = np.tile(np.arange(4), len(frontier))
         step = b[f, k]  # (F*4, 2)
-        d, j = tree.query(points[f] + step)
-        ok = np.isfinite(d) & (d <= 0.3 * np.linalg.norm(step, axis=1))
-        j = np.where(ok, j, 0)
-        if sizes is not None:
-            ok &= (sizes[j] > sizes[f] / 1.45) & (sizes[j] < sizes[f] * 1.45)
-        ok &= ~assigned[j]
+
+        def claims(step, f=f):
+            d, j = tree.query(points[f] + step)
+            ok = np.isfinite(d) & (d <= 0.3 * np.linalg.norm(step, axis=1))
+            j = np.where(ok, j, 0)
+            if sizes is not None:
+                ok &= (sizes[j] > sizes[f] / 1.45) & (sizes[j] < sizes[f] * 1.45)
+            return ok & ~assigned[j], j
+
+        ok, j = claims(step)
+        if not ok.all():  # where the carried step finds nothing: the place predicted from the lattice
+            miss = np.flatnonzero(~ok)
+            ahead = _second_order_steps(points, mn, at, f[miss], axis_of[k[miss]], sign_of[k[miss]].astype(int),
+                                        step[miss])
+            ok2, j2 = claims(ahead, f[miss])
+            ok[miss[ok2]], j[miss[ok2]] = True, j2[ok2]
         sel = np.flatnonzero(ok)
         _, first = np.unique(j[sel], return_index=True)
         sel = sel[first]
@@ -161,8 +178,39 @@ def _grow(points, tree, seed, steps, has, sizes):
         taken = points[jj] - points[ff]
         b[jj, kk] = taken
         b[jj, kk ^ 1] = -taken
+        at.update({(int(a), int(c)): int(j) for (a, c), j in zip(mn[jj], jj, strict=True)})
         frontier = jj
+        if not len(frontier) and revisit and assigned.sum() > 1:
+            # once: every point again, now that the places behind it are known (a point expanded
+            # before them had only the carried step)
+            frontier, revisit = np.flatnonzero(assigned), False
     return mn, assigned
+
+
+def _second_order_steps(points, mn, at, f, axis, sign, step):
+    """Steps (M, 2) px from points ``f`` (M,) one lattice place along ``axis`` (M,) in direction
+    ``sign`` (M,), predicted from the lattice found so far (``at``: lattice coordinates → point):
+    the target place t is extrapolated to second order along a direction d through it where the
+    three places behind it are filled, p(t−d) + Δ + (Δ − Δ'), Δ = p(t−d) − p(t−2d),
+    Δ' = p(t−2d) − p(t−3d), when |Δ + Δ − Δ'| is within ×⅔…×1.5 of |Δ| (the direction of growth
+    first, then the others); elsewhere ``step`` as given (the carried step)."""
+    out = step.copy()
+    dirs = ((1, 0), (-1, 0), (0, 1), (0, -1))
+    for i in range(len(f)):
+        e = [0, 0]
+        e[axis[i]] = sign[i]
+        t = (int(mn[f[i], 0]) + e[0], int(mn[f[i], 1]) + e[1])
+        for d in sorted(dirs, key=lambda d: d != tuple(e)):  # the direction of growth first
+            behind = [at.get((t[0] - j * d[0], t[1] - j * d[1])) for j in (1, 2, 3)]
+            if any(b is None for b in behind):
+                continue
+            p1, p2, p3 = (points[b] for b in behind)
+            delta = p1 - p2
+            ahead = 2.0 * delta - (p2 - p3)
+            if 2.0 / 3.0 < np.linalg.norm(ahead) / max(float(np.linalg.norm(delta)), 1e-9) < 1.5:
+                out[i] = p1 + ahead - points[f[i]]
+                break
+    return out
 
 
 def _unimodular(limit: int = 2) -> np.ndarray:

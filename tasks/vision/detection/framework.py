@@ -9,7 +9,9 @@
 Without a scale hint the coarse search runs over bands of dot size until one yields the grid
 (:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
 1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 12 px up
-at half and 6–16 px at full resolution. Candidates must look like a filled dot on a clear ring of plate
+at half and 6–16 px at full resolution; a band whose 1–99 % grey stretch would clip a small tail
+(a few dots on a large even page) is searched again stretched to the far tails. Candidates must
+look like a filled dot on a clear ring of plate
 (:mod:`tasks.vision.detection.verify`); when the Hough circles give no grid, dark (light) regions
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). A view without exactly one
 complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`): a wrong

@@ -111,28 +111,33 @@ def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: f
     centroid = np.median(points[cand], axis=0)
     cand = cand[np.argsort(np.linalg.norm(points[cand] - centroid, axis=1))][:max_seeds]
     best = none
-    for seed in cand:
-        mn, assigned = _grow(points, tree, int(seed), steps, has, sizes)
-        if assigned.sum() > best[1].sum():
-            best = (mn, assigned)
-        if assigned.sum() >= min_points:
+    # with carried steps first; only when no seed reaches ``min_points``, again with the places a
+    # carried step misses predicted from the lattice (it can also reach strays beyond the plate)
+    for second_order in (False, True):
+        if second_order and (min_points == 0 or best[1].sum() >= min_points):
             break
+        for seed in cand:
+            mn, assigned = _grow(points, tree, int(seed), steps, has, sizes, second_order)
+            if assigned.sum() > best[1].sum():
+                best = (mn, assigned)
+            if assigned.sum() >= min_points:
+                break
     return best
 
 
-def _grow(points, tree, seed, steps, has, sizes):
+def _grow(points, tree, seed, steps, has, sizes, second_order: bool = False):
     """Breadth-first assignment of lattice coordinates from ``seed``, one frontier at a time.
 
     Every frontier point predicts its 4 neighbours one local step away (one batched KD-tree
     query per frontier); a point within 30 % of a step of a prediction joins the lattice (first
     claim wins) and inherits the local steps, updated along the direction it was reached by (and
     its opposite). The four directions keep their own steps: under strong lens distortion the
-    step to one side of a dot can be half as long again as the step to the other. Where the carried
-    step finds no point, the place is predicted from the lattice around it instead, to second order
-    where three places behind it are filled (:func:`_second_order_steps`): perspective and a fisheye
-    change the step from one dot to the next by a third and more, beyond the 30 % a carried step
-    allows. When the frontier is empty every point is expanded once more, with the lattice then
-    known around it.
+    step to one side of a dot can be half as long again as the step to the other. With
+    ``second_order``, where the carried step finds no point the place is predicted from the lattice
+    around it instead, to second order where three places behind it are filled
+    (:func:`_second_order_steps`: perspective and a fisheye change the step from one dot to the next
+    by a third and more, beyond the 30 % a carried step allows), and when the frontier is empty
+    every point is expanded once more, with the lattice then known around it.
     """
     n = len(points)
     mn = np.zeros((n, 2), int)
@@ -161,7 +166,7 @@ def _grow(points, tree, seed, steps, has, sizes):
             return ok & ~assigned[j], j
 
         ok, j = claims(step)
-        if not ok.all():  # where the carried step finds nothing: the place predicted from the lattice
+        if second_order and not ok.all():  # where the carried step finds nothing: predicted from the lattice
             miss = np.flatnonzero(~ok)
             ahead = _second_order_steps(points, mn, at, f[miss], axis_of[k[miss]], sign_of[k[miss]].astype(int),
                                         step[miss])
@@ -180,7 +185,7 @@ def _grow(points, tree, seed, steps, has, sizes):
         b[jj, kk ^ 1] = -taken
         at.update({(int(a), int(c)): int(j) for (a, c), j in zip(mn[jj], jj, strict=True)})
         frontier = jj
-        if not len(frontier) and revisit and assigned.sum() > 1:
+        if not len(frontier) and second_order and revisit and assigned.sum() > 1:
             # once: every point again, now that the places behind it are known (a point expanded
             # before them had only the carried step)
             frontier, revisit = np.flatnonzero(assigned), False

@@ -5,6 +5,7 @@
     .venv/bin/python bench/bench_stress.py --case fisheye  # one case (repeatable)
     .venv/bin/python bench/bench_stress.py --random 200    # random cases: found / refused / wrongly labelled
     .venv/bin/python bench/bench_stress.py --random 80 --fisheye   # random fisheye frames (random_fisheye_case)
+    .venv/bin/python bench/bench_stress.py --hand-fit      # centres against the truth and a hand-fit-like rim ellipse
 
 Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
 then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
@@ -122,6 +123,30 @@ def random_run(n: int, seed: int, fisheye: bool = False) -> None:
               f"median of the per-image median centre errors {med:.3f} px")
 
 
+def hand_fit_run(cases) -> None:
+    """Per case: RRHT's perspective-corrected ``centres`` and its ``ellipse_centres`` against the true
+    projected dot centres and against the rim ellipse of each dot in the image
+    (``real_photo_truth.rim_ellipse_centres``, what a hand-fitted ellipse measures), median px."""
+    from real_photo_truth import rim_ellipse_centres
+
+    print(f"{'case':18s} {'vs true centre: centres / ellipse':>34s} {'vs rim ellipse: centres / ellipse':>36s}")
+    for case in cases:
+        image, truth = render_stress_case(case)
+        plate = replace(case.plate, dark_dots=case.dark_dots)
+        det = detect_grid(image, plate, "rrht")
+        if not det.ok:
+            print(f"{case.name:18s} refused: {det.reason}")
+            continue
+        rim = rim_ellipse_centres(image if case.dark_dots else 255 - image, det.ellipse_centres,
+                                  np.sqrt(det.axes_px[:, 0] * det.axes_px[:, 1]))
+
+        def med(a, b, plate=plate):
+            return float(np.median(errors_up_to_symmetry(plate, a, b)))
+
+        print(f"{case.name:18s} {med(det.centres, truth):17.3f} / {med(det.ellipse_centres, truth):.3f} px "
+              f"{med(det.centres, rim):19.3f} / {med(det.ellipse_centres, rim):.3f} px", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
@@ -131,7 +156,12 @@ def main() -> None:
     ap.add_argument("--random-seed", type=int, default=0)
     ap.add_argument("--fisheye", action="store_true", help="random cases through the fisheye lens "
                     "(detector_stress.random_fisheye_case) instead")
+    ap.add_argument("--hand-fit", action="store_true", help="RRHT's centres and ellipse centres against the true "
+                    "centres and against a hand-fit-like rim ellipse, per case")
     args = ap.parse_args()
+    if args.hand_fit:
+        hand_fit_run([c for c in STRESS_CASES if not args.case or c.name in args.case])
+        return
     if args.random:
         random_run(args.random, args.random_seed, args.fisheye)
         return

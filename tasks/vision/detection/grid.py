@@ -7,8 +7,9 @@ Frames: image px (u right, v down). Plate rows/cols as in :class:`tasks.machine.
    directions of these links (mod 180°) are the lattice axes, whatever the in-plane rotation.
 2. *Growth*: from a well-connected seed, integer lattice coordinates spread to neighbours
    predicted one local step away; the local step vectors are carried along, so perspective
-   (steps shrinking across the plate) is followed. Points off the lattice (clutter) are
-   never reached.
+   (steps shrinking across the plate) is followed. When no seed reaches the plate's dot count,
+   a second round predicts the places a carried step misses from the lattice around them, to
+   second order. Points off the lattice (clutter) are never reached.
 3. *Window*: the rows × cols (or cols × rows) window of the lattice must be complete and unique,
    and every 2 × 2 cell of it close to a parallelogram (a stray blob that won a dot's claim is
    replaced by the candidate that closes it, :mod:`tasks.vision.detection.lattice_check`);

@@ -4,6 +4,8 @@
     .venv/bin/python bench/bench_stress.py --seeds 3       # each case with 3 seeds (other noise, clutter)
     .venv/bin/python bench/bench_stress.py --case fisheye  # one case (repeatable)
     .venv/bin/python bench/bench_stress.py --random 200    # random cases: found / refused / wrongly labelled
+    .venv/bin/python bench/bench_stress.py --random 80 --fisheye   # random fisheye frames (random_fisheye_case)
+    .venv/bin/python bench/bench_stress.py --hand-fit      # centres against the truth and a hand-fit-like rim ellipse
 
 Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
 then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
@@ -45,7 +47,13 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tasks.machine.plate import DotPlate
-from tasks.simulation.detector_stress import STRESS_CASES, errors_up_to_symmetry, random_case, render_stress_case
+from tasks.simulation.detector_stress import (
+    STRESS_CASES,
+    errors_up_to_symmetry,
+    random_case,
+    random_fisheye_case,
+    render_stress_case,
+)
 from tasks.vision.detection import detect_grid
 
 DETECTORS = ("rrht", "blob", "hough", "cv2", "cv2+clustering")
@@ -76,14 +84,15 @@ def match_errors(found: np.ndarray | None, truth: np.ndarray, dot_px: float) -> 
     return d
 
 
-def random_run(n: int, seed: int) -> None:
+def random_run(n: int, seed: int, fisheye: bool = False) -> None:
     """Random stress cases: found / refused / wrong for RRHT and cv2.findCirclesGrid with clustering."""
     rng = np.random.default_rng(seed)
     counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in ("rrht", "cv2+clustering")}
     errs: dict[str, list[float]] = {d: [] for d in counts}
     n_cases = 0
+    draw = random_fisheye_case if fisheye else random_case
     for i in range(n):
-        case = random_case(rng, f"random-{i}")
+        case = draw(rng, f"random-{i}")
         if case is None:
             continue
         n_cases += 1
@@ -114,6 +123,30 @@ def random_run(n: int, seed: int) -> None:
               f"median of the per-image median centre errors {med:.3f} px")
 
 
+def hand_fit_run(cases) -> None:
+    """Per case: RRHT's perspective-corrected ``centres`` and its ``ellipse_centres`` against the true
+    projected dot centres and against the rim ellipse of each dot in the image
+    (``real_photo_truth.rim_ellipse_centres``, what a hand-fitted ellipse measures), median px."""
+    from real_photo_truth import rim_ellipse_centres
+
+    print(f"{'case':18s} {'vs true centre: centres / ellipse':>34s} {'vs rim ellipse: centres / ellipse':>36s}")
+    for case in cases:
+        image, truth = render_stress_case(case)
+        plate = replace(case.plate, dark_dots=case.dark_dots)
+        det = detect_grid(image, plate, "rrht")
+        if not det.ok:
+            print(f"{case.name:18s} refused: {det.reason}")
+            continue
+        rim = rim_ellipse_centres(image if case.dark_dots else 255 - image, det.ellipse_centres,
+                                  np.sqrt(det.axes_px[:, 0] * det.axes_px[:, 1]))
+
+        def med(a, b, plate=plate):
+            return float(np.median(errors_up_to_symmetry(plate, a, b)))
+
+        print(f"{case.name:18s} {med(det.centres, truth):17.3f} / {med(det.ellipse_centres, truth):.3f} px "
+              f"{med(det.centres, rim):19.3f} / {med(det.ellipse_centres, rim):.3f} px", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
@@ -121,9 +154,16 @@ def main() -> None:
     ap.add_argument("--case", action="append", help="only these cases (repeatable)")
     ap.add_argument("--random", type=int, default=0, help="draw this many random cases instead")
     ap.add_argument("--random-seed", type=int, default=0)
+    ap.add_argument("--fisheye", action="store_true", help="random cases through the fisheye lens "
+                    "(detector_stress.random_fisheye_case) instead")
+    ap.add_argument("--hand-fit", action="store_true", help="RRHT's centres and ellipse centres against the true "
+                    "centres and against a hand-fit-like rim ellipse, per case")
     args = ap.parse_args()
+    if args.hand_fit:
+        hand_fit_run([c for c in STRESS_CASES if not args.case or c.name in args.case])
+        return
     if args.random:
-        random_run(args.random, args.random_seed)
+        random_run(args.random, args.random_seed, args.fisheye)
         return
     cases = [c for c in STRESS_CASES if not args.case or c.name in args.case]
     print(f"cv2 {cv2.__version__}, cv2 threads {cv2.getNumThreads()}; {len(cases)} cases × {args.seeds} seeds, "

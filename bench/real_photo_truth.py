@@ -31,6 +31,10 @@ hundredths of a px on these views). Recorded beside it, to judge it:
   (:func:`intensity_centroids`; equal to the ellipse centre for a uniformly dark dot under
   symmetric blur). Where the two disagree the dot's image is not uniform (shading inside the dot,
   smear, colour fringes), and a centroid-type estimator is pulled towards its darker side.
+* ``rim_in_image_px``: the same rim-ellipse estimator run on the written image itself (resized,
+  cropped or through the fisheye lens), started from ``truth_px``: through the lens it is the
+  centre of the ellipse fitted to the distorted dot, which is what a hand fit on that image gives,
+  and differs from the mapped centre ``truth_px``.
 * ``centroid_vs_neighbour_map_px``: each block dot's centroid against a plate → image map
   (homography times a cubic) fitted to the centroids of the dots around the block
   (:func:`predict_hole`): a check that the labels follow the lattice (a mislabelled dot would be
@@ -369,6 +373,12 @@ def main() -> None:
                 q = np.column_stack([(uv[:, 0] + 0.5) * sx - 0.5, (uv[:, 1] + 0.5) * sy - 0.5])
                 return q if to_out is None else to_out(q)
 
+            # the rim ellipse fitted again on the image as delivered (through the lens: the centre
+            # of the distorted dot's ellipse, what a hand fit on that image measures)
+            ring = np.stack([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)], axis=1)
+            r_out = np.array([np.median(np.linalg.norm(scaled(cc + rr * ring) - scaled(cc[None]), axis=1))
+                              for cc, rr in zip(rim, r[block], strict=True)])
+            rim_here = rim_ellipse_centres(img, scaled(rim), r_out)
             stem = name + ("" if variant == "1" else "_x" + variant.replace(":", "_"))
             cv2.imwrite(str(args.out / f"{stem}.png"), img)
             truth = {"source": path, "variant": variant, "crop_xywh": crop_xywh, "inpaint_ellipses": boxes,
@@ -377,6 +387,7 @@ def main() -> None:
                      "pitch_over_diameter": args.ratio, "dot_diameter_px": float(np.median(2 * r[block])) * sx,
                      "truth_px": scaled(rim).tolist(), "centroid_px": scaled(c[block]).tolist(),
                      "rim_sloped_px": scaled(rim_sloped).tolist(),
+                     "rim_in_image_px": rim_here.tolist(),
                      "block_lattice": g[block].tolist(),
                      "centroid_vs_truth_px": (spread * sx).tolist(),
                      "neighbour_map_rms_px": map_rms * sx, "neighbour_map_n_dots": n_others,

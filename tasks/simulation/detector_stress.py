@@ -247,6 +247,17 @@ STRESS_CASES: tuple[StressCase, ...] = (
                jpeg=85, colour=True, seed=13),
     StressCase("light-tilt", 1280, 960, 50.0, tilt_deg=40.0, tilt_azimuth_deg=120.0, dark_dots=False,
                clutter=20, texture=True, colour=True, jpeg=85, seed=10),
+    # off the fisheye's axis with the near side towards it, dots nearly touching (pitch 1.5 diameters):
+    # the step from one row to the next grows by a third (a draw of random_fisheye_case)
+    StressCase("fisheye-steps", 320, 360, 34.0, focal_px=170.0, k1=-0.35, k2=0.1, offset=(-0.19, 0.24),
+               tilt_deg=20.0, tilt_azimuth_deg=34.0, spin_deg=-39.0, clutter=56, texture=True, colour=True, jpeg=90,
+               seed=696575915),
+    # an evenly lit page filling the frame: the 12 dots are under 1 % of the pixels, the grey range
+    # is the paper's noise (as in real photographs of a small grid on a large sheet)
+    StressCase("page-15px", 640, 480, 15.0, tilt_deg=10.0, spin_deg=5.0, jpeg=85, colour=True, gradient=0.0,
+               vignetting=0.0, plate=replace(ISSUE_PLATE, margin_mm=400.0), seed=14),
+    StressCase("page-12mp", 3024, 4032, 60.0, tilt_deg=5.0, jpeg=85, colour=True, gradient=0.0, vignetting=0.0,
+               plate=replace(ISSUE_PLATE, margin_mm=400.0), seed=15),
 )
 """The stress set: names say what each case stresses."""
 
@@ -267,6 +278,22 @@ def random_case(rng: np.random.Generator, name: str) -> StressCase | None:
         shadow=float(rng.choice([1.0, 0.6, 0.4])), colour=bool(rng.random() < 0.5),
         jpeg=int(rng.choice([0, 95, 85, 70, 50])), defocus_px=float(rng.choice([0.0, 0.0, 1.0, 2.0])),
         gradient=float(rng.uniform(0, 1)), vignetting=float(rng.uniform(0, 0.5)), seed=int(rng.integers(1 << 30)))
+    plate = replace(case.plate, dark_dots=case.dark_dots)
+    return case if plate_in_view(case.camera(), plate, case.pose(), border_px=1.0) else None
+
+
+def random_fisheye_case(rng: np.random.Generator, name: str) -> StressCase | None:
+    """A 320 × 360 frame through the fisheye stress case's lens (f 170 px, k1 −0.35, k2 0.1) drawn
+    at random: dots of 20–40 px, the sheet up to 45 % of the half-frame off the axis, tilt ≤ 35°,
+    any spin, 20–60 clutter items (half of them blobs), either polarity, shadow in half; or None
+    when its dots are not all wholly in the image (the hidden fisheye regime of issue 33, with
+    clutter added)."""
+    case = StressCase(name, 320, 360, float(rng.uniform(20, 40)), focal_px=170.0, k1=-0.35, k2=0.1,
+                      offset=(float(rng.uniform(-0.45, 0.45)), float(rng.uniform(-0.45, 0.45))),
+                      tilt_deg=float(rng.uniform(0, 35)), tilt_azimuth_deg=float(rng.uniform(0, 360)),
+                      spin_deg=float(rng.uniform(-180, 180)), clutter=int(rng.integers(20, 60)),
+                      texture=bool(rng.random() < 0.5), shadow=float(rng.choice([1.0, 0.5])), jpeg=90, colour=True,
+                      dark_dots=bool(rng.random() < 0.7), seed=int(rng.integers(1 << 30)))
     plate = replace(case.plate, dark_dots=case.dark_dots)
     return case if plate_in_view(case.camera(), plate, case.pose(), border_px=1.0) else None
 

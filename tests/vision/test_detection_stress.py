@@ -24,6 +24,7 @@ CASES = {c.name: c for c in STRESS_CASES}
 SMALL_PHONE = replace(CASES["phone-12mp"], name="phone-3mp", width=1512, height=2016, dot_px=75.0)
 GARDEN = replace(CASES["phone-garden"], name="phone-garden-3mp", width=1512, height=2016, dot_px=75.0)
 LARGE_DOTS = replace(CASES["phone-400px"], name="phone-200px", width=1512, height=2016, dot_px=200.0)
+PAGE = replace(CASES["page-12mp"], name="page-3mp", width=1512, height=2016, dot_px=30.0)
 
 
 def _plate(case):
@@ -33,6 +34,7 @@ def _plate(case):
 @pytest.mark.parametrize(("case", "median_px", "max_px"), [
     (CASES["fisheye"], 0.3, 0.8),
     (CASES["fisheye-light"], 0.3, 0.8),
+    (CASES["fisheye-steps"], 0.3, 0.8),  # steps growing by a third per row (before: "missing dots")
     (CASES["distant-15px"], 0.05, 0.1),
     (CASES["distant-8px"], 0.05, 0.1),
     (CASES["tilt-50"], 0.05, 0.1),
@@ -41,6 +43,8 @@ def _plate(case):
     (SMALL_PHONE, 0.05, 0.1),
     (GARDEN, 0.05, 0.1),
     (LARGE_DOTS, 0.05, 0.1),
+    (CASES["page-15px"], 0.05, 0.1),  # dots under 1 % of an evenly lit page: the grey stretch kept
+    (PAGE, 0.05, 0.1),  # them from clipping (before: "missing dots", 11 and 7 of 12 found)
 ], ids=lambda v: getattr(v, "name", None))
 def test_stress_case_is_found_and_labelled(case, median_px, max_px):
     image, truth = render_stress_case(case)

@@ -9,7 +9,9 @@
 Without a scale hint the coarse search runs over bands of dot size until one yields the grid
 (:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
 1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 12 px up
-at half and 6–16 px at full resolution. Candidates must look like a filled dot on a clear ring of plate
+at half and 6–16 px at full resolution; a band whose 1–99 % grey stretch would clip a small tail
+(a few dots on a large even page) is searched again stretched to the far tails. Candidates must
+look like a filled dot on a clear ring of plate
 (:mod:`tasks.vision.detection.verify`); when the Hough circles give no grid, dark (light) regions
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). A view without exactly one
 complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`): a wrong
@@ -139,6 +141,17 @@ class CoarseAttempt:
             return -1
         return int(np.prod(self.order.lattice_shape))
 
+    def spacing_over_size(self) -> float:
+        """Median over the grid's dots of the distance to the nearest other dot of the grid over
+        the dot's diameter (major axis); NaN without a grid."""
+        if not self.ok:
+            return float("nan")
+        idx = self.order.index[self.order.index >= 0]
+        c = self.circles.centres[idx]
+        d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=2)
+        np.fill_diagonal(d, np.inf)
+        return float(np.median(d.min(axis=1) / (2.0 * self.circles.axes[idx, 0])))
+
     def candidates_full(self) -> tuple[np.ndarray, np.ndarray]:
         """(centres (K, 2), diameters (K,)) of the circles found, full-size px."""
         return coarse_to_full(self.circles.centres, self.factor), 2.0 * self.circles.axes[:, 0] * self.factor
@@ -151,9 +164,31 @@ def coarse_search(image: np.ndarray, plate: DotPlate, factor: int, d_min: float,
     them into the plate's grid (all on the coarse image); timings add up in ``tm``."""
     t0 = time.perf_counter()
     small = downsample(image, factor)
-    pre, _ = auto_gamma(small, p.median_ksize)
+    pre, stretch = auto_gamma(small, p.median_ksize)
+    tm["preprocess"] = tm.get("preprocess", 0.0) + time.perf_counter() - t0
+    attempt = search_preprocessed(pre, plate, factor, d_min, d_max, p, tm, expected_rotation_deg=expected_rotation_deg,
+                                  mirrored=mirrored, expected_centres_px=expected_centres_px)
+    if not stretch["tails_differ"]:
+        return attempt
+    # a few dots on a large even page lie beyond the 1–99 % stretch (clipped, a faint halo round
+    # them can give the edges): search again stretched to the far tails, and of two grids keep the
+    # one whose spacing over its dots' size is nearer the plate's
+    t0 = time.perf_counter()
+    pre, _ = auto_gamma(small, p.median_ksize, small_tails=True)
+    tm["preprocess"] = tm.get("preprocess", 0.0) + time.perf_counter() - t0
+    retry = search_preprocessed(pre, plate, factor, d_min, d_max, p, tm, expected_rotation_deg=expected_rotation_deg,
+                                mirrored=mirrored, expected_centres_px=expected_centres_px)
+    if attempt.ok and retry.ok:
+        want = np.log(plate.pitch_range_mm[0] / plate.dot_diameter_mm)
+        return min((attempt, retry), key=lambda a: abs(np.log(a.spacing_over_size()) - want))
+    return retry if retry.ok or retry.score > attempt.score else attempt
+
+
+def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
+                        p: FrameworkParams, tm: dict, *, expected_rotation_deg: float | None, mirrored: bool,
+                        expected_centres_px: np.ndarray | None) -> CoarseAttempt:
+    """:func:`coarse_search` on the preprocessed coarse image ``pre`` (downsampled by ``factor``)."""
     t1 = time.perf_counter()
-    tm["preprocess"] = tm.get("preprocess", 0.0) + t1 - t0
     em = canny_edges(pre)
     edges, _ = filter_edges(em.edges, d_min / factor, d_max / factor)
     tm["edges"] = tm.get("edges", 0.0) + time.perf_counter() - t1
@@ -172,7 +207,7 @@ def coarse_search(image: np.ndarray, plate: DotPlate, factor: int, d_min: float,
             return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
                                                   "dot grid")
         t3 = time.perf_counter()
-        order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=small.shape,
+        order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
                            expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
         return CoarseAttempt(factor, c, order, order.reason)

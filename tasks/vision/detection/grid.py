@@ -7,10 +7,14 @@ Frames: image px (u right, v down). Plate rows/cols as in :class:`tasks.machine.
    directions of these links (mod 180°) are the lattice axes, whatever the in-plane rotation.
 2. *Growth*: from a well-connected seed, integer lattice coordinates spread to neighbours
    predicted one local step away; the local step vectors are carried along, so perspective
-   (steps shrinking across the plate) is followed. Points off the lattice (clutter) are
-   never reached.
-3. *Window*: the rows × cols (or cols × rows) window of the lattice must be complete and unique;
-   otherwise the view is rejected with a reason (out of view, missing dots, extra dots) — unless
+   (steps shrinking across the plate) is followed. When no seed reaches the plate's dot count,
+   a second round predicts the places a carried step misses from the lattice around them, to
+   second order. Points off the lattice (clutter) are never reached.
+3. *Window*: the rows × cols (or cols × rows) window of the lattice must be complete and unique,
+   and every 2 × 2 cell of it close to a parallelogram (a stray blob that won a dot's claim is
+   replaced by the candidate that closes it, :mod:`tasks.vision.detection.lattice_check`);
+   otherwise the view is rejected with a reason (out of view, missing dots, extra dots,
+   irregular lattice) — unless
    the dots' expected positions are given, when a plate partly out of the image is labelled by
    them (:mod:`tasks.vision.detection.partial_view`) and step 4 is not needed.
 4. *Orientation*: of the 8 symmetries of a rectangle, the physical handedness (the camera looks
@@ -30,6 +34,7 @@ from scipy.spatial import cKDTree
 
 from tasks.machine.plate import DotPlate
 from tasks.vision.detection.grid_order import GridOrder, fail_order, lattice_steps, rotation_deg
+from tasks.vision.detection.lattice_check import check_window
 from tasks.vision.detection.partial_view import order_by_prior
 
 __all__ = ["GridOrder", "build_lattice", "order_grid", "reduce_lattice"]
@@ -107,23 +112,33 @@ def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: f
     centroid = np.median(points[cand], axis=0)
     cand = cand[np.argsort(np.linalg.norm(points[cand] - centroid, axis=1))][:max_seeds]
     best = none
-    for seed in cand:
-        mn, assigned = _grow(points, tree, int(seed), steps, has, sizes)
-        if assigned.sum() > best[1].sum():
-            best = (mn, assigned)
-        if assigned.sum() >= min_points:
+    # with carried steps first; only when no seed reaches ``min_points``, again with the places a
+    # carried step misses predicted from the lattice (it can also reach strays beyond the plate)
+    for second_order in (False, True):
+        if second_order and (min_points == 0 or best[1].sum() >= min_points):
             break
+        for seed in cand:
+            mn, assigned = _grow(points, tree, int(seed), steps, has, sizes, second_order)
+            if assigned.sum() > best[1].sum():
+                best = (mn, assigned)
+            if assigned.sum() >= min_points:
+                break
     return best
 
 
-def _grow(points, tree, seed, steps, has, sizes):
+def _grow(points, tree, seed, steps, has, sizes, second_order: bool = False):
     """Breadth-first assignment of lattice coordinates from ``seed``, one frontier at a time.
 
     Every frontier point predicts its 4 neighbours one local step away (one batched KD-tree
     query per frontier); a point within 30 % of a step of a prediction joins the lattice (first
     claim wins) and inherits the local steps, updated along the direction it was reached by (and
     its opposite). The four directions keep their own steps: under strong lens distortion the
-    step to one side of a dot can be half as long again as the step to the other.
+    step to one side of a dot can be half as long again as the step to the other. With
+    ``second_order``, where the carried step finds no point the place is predicted from the lattice
+    around it instead, to second order where three places behind it are filled
+    (:func:`_second_order_steps`: perspective and a fisheye change the step from one dot to the next
+    by a third and more, beyond the 30 % a carried step allows), and when the frontier is empty
+    every point is expanded once more, with the lattice then known around it.
     """
     n = len(points)
     mn = np.zeros((n, 2), int)
@@ -136,16 +151,28 @@ def _grow(points, tree, seed, steps, has, sizes):
     frontier = np.array([seed])
     axis_of = np.array([0, 0, 1, 1])
     sign_of = np.array([1.0, -1.0, 1.0, -1.0])
+    at = {(0, 0): seed}  # lattice coordinates → point
+    revisit = True
     while len(frontier):
         f = np.repeat(frontier, 4)  # (F*4,)
         k = np.tile(np.arange(4), len(frontier))
         step = b[f, k]  # (F*4, 2)
-        d, j = tree.query(points[f] + step)
-        ok = np.isfinite(d) & (d <= 0.3 * np.linalg.norm(step, axis=1))
-        j = np.where(ok, j, 0)
-        if sizes is not None:
-            ok &= (sizes[j] > sizes[f] / 1.45) & (sizes[j] < sizes[f] * 1.45)
-        ok &= ~assigned[j]
+
+        def claims(step, f=f):
+            d, j = tree.query(points[f] + step)
+            ok = np.isfinite(d) & (d <= 0.3 * np.linalg.norm(step, axis=1))
+            j = np.where(ok, j, 0)
+            if sizes is not None:
+                ok &= (sizes[j] > sizes[f] / 1.45) & (sizes[j] < sizes[f] * 1.45)
+            return ok & ~assigned[j], j
+
+        ok, j = claims(step)
+        if second_order and not ok.all():  # where the carried step finds nothing: predicted from the lattice
+            miss = np.flatnonzero(~ok)
+            ahead = _second_order_steps(points, mn, at, f[miss], axis_of[k[miss]], sign_of[k[miss]].astype(int),
+                                        step[miss])
+            ok2, j2 = claims(ahead, f[miss])
+            ok[miss[ok2]], j[miss[ok2]] = True, j2[ok2]
         sel = np.flatnonzero(ok)
         _, first = np.unique(j[sel], return_index=True)
         sel = sel[first]
@@ -157,8 +184,39 @@ def _grow(points, tree, seed, steps, has, sizes):
         taken = points[jj] - points[ff]
         b[jj, kk] = taken
         b[jj, kk ^ 1] = -taken
+        at.update({(int(a), int(c)): int(j) for (a, c), j in zip(mn[jj], jj, strict=True)})
         frontier = jj
+        if not len(frontier) and second_order and revisit and assigned.sum() > 1:
+            # once: every point again, now that the places behind it are known (a point expanded
+            # before them had only the carried step)
+            frontier, revisit = np.flatnonzero(assigned), False
     return mn, assigned
+
+
+def _second_order_steps(points, mn, at, f, axis, sign, step):
+    """Steps (M, 2) px from points ``f`` (M,) one lattice place along ``axis`` (M,) in direction
+    ``sign`` (M,), predicted from the lattice found so far (``at``: lattice coordinates → point):
+    the target place t is extrapolated to second order along a direction d through it where the
+    three places behind it are filled, p(t−d) + Δ + (Δ − Δ'), Δ = p(t−d) − p(t−2d),
+    Δ' = p(t−2d) − p(t−3d), when |Δ + Δ − Δ'| is within ×⅔…×1.5 of |Δ| (the direction of growth
+    first, then the others); elsewhere ``step`` as given (the carried step)."""
+    out = step.copy()
+    dirs = ((1, 0), (-1, 0), (0, 1), (0, -1))
+    for i in range(len(f)):
+        e = [0, 0]
+        e[axis[i]] = sign[i]
+        t = (int(mn[f[i], 0]) + e[0], int(mn[f[i], 1]) + e[1])
+        for d in sorted(dirs, key=lambda d: d != tuple(e)):  # the direction of growth first
+            behind = [at.get((t[0] - j * d[0], t[1] - j * d[1])) for j in (1, 2, 3)]
+            if any(b is None for b in behind):
+                continue
+            p1, p2, p3 = (points[b] for b in behind)
+            delta = p1 - p2
+            ahead = 2.0 * delta - (p2 - p3)
+            if 2.0 / 3.0 < np.linalg.norm(ahead) / max(float(np.linalg.norm(delta)), 1e-9) < 1.5:
+                out[i] = p1 + ahead - points[f[i]]
+                break
+    return out
 
 
 def _unimodular(limit: int = 2) -> np.ndarray:
@@ -269,7 +327,9 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     if strays >= max(2, (min(rows, cols) + 1) // 2):
         return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
                                  f"window ({shape_txt} lattice)", (hh, ww))
-    win = occ[a0 : a0 + h, b0 : b0 + w]
+    win, irregular = check_window(points, sizes, occ[a0 : a0 + h, b0 : b0 + w])
+    if irregular:
+        return fail_order(plate, irregular, (hh, ww))
     ab = np.stack(np.meshgrid(np.arange(h), np.arange(w), indexing="ij"), axis=-1).reshape(-1, 2)
     pidx = win.reshape(-1)
     pts = points[pidx]

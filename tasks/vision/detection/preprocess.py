@@ -54,26 +54,55 @@ def gamma_lut(gamma: float, lo: float, hi: float, toe: float = 0.05) -> np.ndarr
     return np.round(255.0 * y).astype(np.uint8)
 
 
-def auto_gamma(image: np.ndarray, median_ksize: int = 3, target_mid: float = 0.5) -> tuple[np.ndarray, dict]:
+def auto_gamma(image: np.ndarray, median_ksize: int = 3, target_mid: float = 0.5,
+               small_tails: bool = False) -> tuple[np.ndarray, dict]:
     """Median filter, then a contrast stretch and gamma that maps the mid-grey level to ``target_mid``.
 
-    The stretch uses the 1st and 99th percentiles; mid is the Otsu threshold between the dark and
-    the light grey levels and γ = log(target_mid) / log(mid) (within [0.5, 2]), so that dark-side
-    and light-side edges get comparable strength under uneven illumination and low contrast.
-    Returns (image uint8, info dict with lo, hi, gamma).
+    The stretch uses the 1st and 99th percentiles (with ``small_tails``, the far tails where
+    :func:`keep_small_tails` says so); mid is the Otsu threshold between the dark and the light grey levels and
+    γ = log(target_mid) / log(mid) (within [0.5, 2]), so that dark-side and light-side edges get
+    comparable strength under uneven illumination and low contrast.
+    Returns (image uint8, info dict with lo, hi, gamma and ``tails_differ``: whether
+    :func:`keep_small_tails` would change the stretch).
     """
     med = cv2.medianBlur(image, median_ksize) if median_ksize > 1 else image
     hist = cv2.calcHist([med], [0], None, [256], [0, 256]).ravel()
     cdf = np.cumsum(hist) / max(hist.sum(), 1.0)
     lo = float(np.searchsorted(cdf, 0.01))
     hi = float(np.searchsorted(cdf, 0.99))
+    wide = keep_small_tails(cdf, lo, hi)
+    differ = wide != (lo, hi)
+    if small_tails:
+        lo, hi = wide
     if hi - lo < 1:
-        return med, {"lo": lo, "hi": hi, "gamma": 1.0}
+        return med, {"lo": lo, "hi": hi, "gamma": 1.0, "tails_differ": differ}
     mid = _otsu(hist)
     m = np.clip((mid - lo) / (hi - lo), 0.05, 0.95)
     gamma = float(np.clip(np.log(target_mid) / np.log(m), 0.5, 2.0))
     out = cv2.LUT(med, gamma_lut(gamma, lo, hi))
-    return out, {"lo": lo, "hi": hi, "gamma": gamma}
+    return out, {"lo": lo, "hi": hi, "gamma": gamma, "tails_differ": differ}
+
+
+TAIL_FRACTION = 1e-4
+"""Fraction of the pixels beyond which a grey level counts as present (a few hot pixels that survive
+the median filter do not)."""
+
+
+def keep_small_tails(cdf: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """The stretch's (lo, hi) grey levels, widened to the 0.01 % and 99.99 % levels of ``cdf`` (256,)
+    where those lie more than half the stretched range beyond the 1 % and 99 % levels ``lo``, ``hi``.
+
+    A small grid on a large sheet (12 dots of 19 px on a 2560 × 2160 white page: 0.07 % of the
+    pixels) puts its dots below the 1st percentile: stretched from the paper's noise, the dots
+    clip to black and a faint halo around them becomes the strongest edge (circles found twice
+    the dots' size). Where the dots make more than 1 % of the image, as on every campaign view,
+    the tails lie within the range and nothing changes. The coarse search uses them only when the
+    usual stretch finds no grid (:func:`tasks.vision.detection.framework.coarse_search`).
+    """
+    lo_tail = float(np.searchsorted(cdf, TAIL_FRACTION))
+    hi_tail = float(np.searchsorted(cdf, 1.0 - TAIL_FRACTION))
+    span = hi - lo
+    return (lo_tail if lo - lo_tail > 0.5 * span else lo), (hi_tail if hi_tail - hi > 0.5 * span else hi)
 
 
 def _otsu(hist: np.ndarray) -> float:

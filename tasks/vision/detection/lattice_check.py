@@ -1,0 +1,115 @@
+"""Check a labelled window of dots against its own lattice before it is trusted.
+
+Growth (:func:`tasks.vision.detection.grid.build_lattice`) takes, one local step from a dot, the
+candidate nearest the predicted position within 30 % of a step. Where the step changes fast
+(near the rim of a fisheye, a grid off its axis) the carried step overshoots, and a stray blob
+near the true dot's position may win the claim: the window is complete, but one dot is wrong.
+
+Every 2 × 2 cell of a plate's lattice is nearly a parallelogram in the image, and nearly the same
+one as its neighbours, under perspective and smooth lens distortion: its mixed second difference
+p(i, j) − p(i−1, j) − p(i, j−1) + p(i−1, j−1) changes little from cell to cell against its steps
+(the true grids of 3000 random stress cases, ``detector_stress.random_case``: at most 0.10 of a
+step without fisheye, 0.28 through the fisheye lens at 49° of tilt). A wrong dot moves its cells'
+by its own offset. So:
+
+1. each dot of the window is predicted from every complete cell it is a corner of (the other
+   three corners, parallelogram rule); where another candidate of a similar size lies clearly
+   nearer that prediction than the dot taken, and the dot taken lies off it, the other candidate
+   replaces it;
+2. afterwards every cell must close to within ``max_cell_misfit`` of its mean step, or the window
+   is refused with the dot and the misfit named (a wrong labelling is worse than none).
+
+Units: the px of whatever image the points are in; the misfits are fractions of a step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+MAX_CELL_MISFIT = 0.35
+"""Largest mixed second difference of a 2 × 2 cell, as a fraction of its mean side, for a window to
+be accepted."""
+SWAP_MARGIN = 2.0
+"""A candidate replaces a dot when it lies this many times nearer the dot's predicted position."""
+MIN_SWAP_OFFSET = 0.1
+"""… and the dot taken lies at least this fraction of a step off that position."""
+
+
+def cell_misfits(grid_uv: np.ndarray) -> np.ndarray:
+    """(h−1, w−1) how far each 2 × 2 cell of ``grid_uv`` (h, w, 2) px is from closing like the
+    others: its mixed second difference minus the window's median one (with three cells or more;
+    a lens or a tilt bends every cell of a small window alike), over the mean length of its four
+    sides."""
+    p00, p01, p10, p11 = grid_uv[:-1, :-1], grid_uv[:-1, 1:], grid_uv[1:, :-1], grid_uv[1:, 1:]
+    mixed = p11 - p10 - p01 + p00
+    if mixed.shape[0] * mixed.shape[1] >= 3:
+        mixed = mixed - np.median(mixed.reshape(-1, 2), axis=0)
+    sides = (np.linalg.norm(p01 - p00, axis=2) + np.linalg.norm(p11 - p10, axis=2)
+             + np.linalg.norm(p10 - p00, axis=2) + np.linalg.norm(p11 - p01, axis=2)) / 4.0
+    return np.linalg.norm(mixed, axis=2) / np.maximum(sides, 1e-9)
+
+
+def parallelogram_predictions(grid_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per dot of ``grid_uv`` (h, w, 2) px: the median of its predictions from the other three
+    corners of every cell it belongs to (h, w, 2) px, and the mean side of those cells (h, w) px."""
+    h, w, _ = grid_uv.shape
+    preds = [[[] for _ in range(w)] for _ in range(h)]
+    sides = [[[] for _ in range(w)] for _ in range(h)]
+    for i in range(h - 1):
+        for j in range(w - 1):
+            c = {(a, b): grid_uv[i + a, j + b] for a in (0, 1) for b in (0, 1)}
+            side = float(np.mean([np.linalg.norm(c[0, 1] - c[0, 0]), np.linalg.norm(c[1, 1] - c[1, 0]),
+                                  np.linalg.norm(c[1, 0] - c[0, 0]), np.linalg.norm(c[1, 1] - c[0, 1])]))
+            for a in (0, 1):
+                for b in (0, 1):
+                    preds[i + a][j + b].append(c[a, 1 - b] + c[1 - a, b] - c[1 - a, 1 - b])
+                    sides[i + a][j + b].append(side)
+    pred = np.array([[np.median(np.array(preds[i][j]), axis=0) for j in range(w)] for i in range(h)])
+    side = np.array([[float(np.median(sides[i][j])) for j in range(w)] for i in range(h)])
+    return pred, side
+
+
+def check_window(points: np.ndarray, sizes: np.ndarray | None, window: np.ndarray,
+                 max_cell_misfit: float = MAX_CELL_MISFIT) -> tuple[np.ndarray, str]:
+    """(window, reason): ``window`` (h, w) indices into ``points`` (N, 2) px, with dots replaced by
+    better-fitting candidates (step 1 of the module docstring; ``sizes`` (N,) px bound how
+    similar a replacement must be, within 1.45×); reason is "" when every cell closes (step 2),
+    else why the window is refused."""
+    window = window.copy()
+    h, w = window.shape
+    if h < 2 or w < 2:
+        return window, ""
+    tree = cKDTree(points)
+    for _ in range(h * w):  # one replacement at a time, the dot furthest off its prediction first
+        pred, side = parallelogram_predictions(points[window])
+        off = np.linalg.norm(points[window] - pred, axis=2)
+        worst = cell_misfits(points[window]).max()
+        taken = set(window.ravel().tolist())
+        swapped = False
+        for flat in np.argsort(-(off / side).ravel()):
+            i, j = divmod(int(flat), w)
+            if off[i, j] <= MIN_SWAP_OFFSET * side[i, j]:
+                break
+            dist, near = tree.query(pred[i, j], k=min(4, len(points)))
+            for d, k in zip(np.atleast_1d(dist), np.atleast_1d(near), strict=True):
+                if d > off[i, j] / SWAP_MARGIN or k in taken:
+                    continue
+                if sizes is not None and not (sizes[window[i, j]] / 1.45 < sizes[k] < sizes[window[i, j]] * 1.45):
+                    continue
+                trial = window.copy()
+                trial[i, j] = k
+                if cell_misfits(points[trial]).max() < worst:  # only a replacement that mends the lattice
+                    window, swapped = trial, True
+                break
+            if swapped:
+                break
+        if not swapped:
+            break
+    misfit = cell_misfits(points[window])
+    if misfit.max() > max_cell_misfit:
+        i, j = np.unravel_index(int(np.argmax(misfit)), misfit.shape)
+        return window, (f"irregular lattice: a 2x2 cell of dots (window rows {i}-{i + 1}, columns {j}-{j + 1}) "
+                        f"is off a parallelogram by {misfit[i, j]:.2f} of its step (at most {max_cell_misfit}); "
+                        "one of its dots may be a stray blob")
+    return window, ""

@@ -197,6 +197,10 @@ def detect(
     json_output: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
     debug_image: Annotated[Path | None, typer.Option(
         help="write a PNG with the candidates, the grid found (row 0 red) or the reason it was refused")] = None,
+    centres: Annotated[str, typer.Option(
+        help="which centre u_px/v_px give: 'ellipse' (the fitted rim ellipse's centre, what a hand fit of the "
+             "dot's edge measures) or 'corrected' (where the dot's centre projects: the ellipse centre less "
+             "the perspective and lens bias, what fivecal's calibration uses); --json always gives both")] = "ellipse",
 ) -> None:
     """Run a dot-grid detector on one image and print the ordered centres with their fit quality."""
     import json
@@ -210,6 +214,8 @@ def detect(
 
     if detector not in DETECTORS:
         raise typer.BadParameter(f"choose one of {sorted(DETECTORS)}", param_hint="--detector")
+    if centres not in ("ellipse", "corrected"):
+        raise typer.BadParameter("choose 'ellipse' or 'corrected'", param_hint="--centres")
     raw = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
     if raw is None:
         typer.echo(f"error: {image}: missing or not an image OpenCV can read", err=True)
@@ -232,16 +238,19 @@ def detect(
             raise typer.Exit(2)
     rc = plate.row_col()
     ellipse = result.ellipse_centres if result.ellipse_centres is not None else result.centres
+    shown = ellipse if centres == "ellipse" else result.centres
     dots = [{"row": int(r), "col": int(c), "u_px": float(u), "v_px": float(v), "ellipse_u_px": float(eu),
-             "ellipse_v_px": float(ev), "residual_rms_px": float(q), "support_ratio": float(sr)}
-            for (r, c), (u, v), (eu, ev), q, sr in zip(rc, result.centres, ellipse, result.residual_rms_px,
-                                                       result.support_ratio, strict=True)]
+             "ellipse_v_px": float(ev), "corrected_u_px": float(cu), "corrected_v_px": float(cv),
+             "residual_rms_px": float(q), "support_ratio": float(sr)}
+            for (r, c), (u, v), (eu, ev), (cu, cv), q, sr in zip(rc, shown, ellipse, result.centres,
+                                                                 result.residual_rms_px, result.support_ratio,
+                                                                 strict=True)]
     if json_output:
         typer.echo(json.dumps({"image": str(image), "ok": result.ok, "reason": result.reason,
                                "detector": result.detector, "elapsed_s": result.elapsed_s,
                                "rotation_deg": result.rotation_deg, "n_candidates": result.n_candidates,
                                "orientation_ambiguous": result.orientation_ambiguous,
-                               "pixel_origin": "centre of the top-left pixel",
+                               "pixel_origin": "centre of the top-left pixel", "centres": centres,
                                "dots": dots}, indent=1))
     else:
         typer.echo(f"{image}: {result.detector} {'ok' if result.ok else 'FAILED: ' + result.reason} "

@@ -66,13 +66,21 @@ def test_detect_prints_ordered_centres_that_match_the_truth(tiny_campaign):
                                  "--diameter-mm", "2.5", "--json"])
     assert result.exit_code == 0, result.output
     found = json.loads(result.output)
-    assert found["ok"] and len(found["dots"]) == 49
-    uv = np.array([[d["u_px"], d["v_px"]] for d in found["dots"]])
+    assert found["ok"] and len(found["dots"]) == 49 and found["centres"] == "ellipse"
+    uv = np.array([[d["corrected_u_px"], d["corrected_v_px"]] for d in found["dots"]])
+    ellipse = np.array([[d["ellipse_u_px"], d["ellipse_v_px"]] for d in found["dots"]])
+    assert np.array_equal(np.array([[d["u_px"], d["v_px"]] for d in found["dots"]]), ellipse)  # the default
     truth = pd.read_parquet(tiny_campaign / "truth" / "dots.parquet")
     true_uv = truth[truth.image_id == row.image_id][["u_px", "v_px"]].to_numpy()
     # labels may differ by a symmetry of the grid without a rotation prior: compare as sets
     nearest = np.min(np.linalg.norm(true_uv[:, None] - uv[None], axis=-1), axis=1)
-    assert nearest.max() < 0.15  # px, at 768×512 (4× binned)
+    assert nearest.max() < 0.15  # px, at 768×512 (4× binned): where the dots' centres project
+    assert 0 < np.abs(ellipse - uv).max() < 0.1  # the perspective bias of the ellipse centres, small here
+
+    corrected = runner.invoke(app, ["detect", str(tiny_campaign / row.path), "--pitch-mm", "9", "--row-pitch-mm",
+                                    "6", "--diameter-mm", "2.5", "--json", "--centres", "corrected"])
+    dots = json.loads(corrected.output)["dots"]
+    assert np.array_equal(np.array([[d["u_px"], d["v_px"]] for d in dots]), uv)
 
 
 def test_detect_names_an_unreadable_image(tmp_path):

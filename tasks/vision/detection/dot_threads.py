@@ -1,0 +1,87 @@
+"""The per-dot stages of the detector spread over threads, with results that do not depend on it.
+
+The sub-pixel stages (:mod:`tasks.vision.detection.subpixel`, :mod:`tasks.vision.detection.edge_fit`)
+work on all dots of a plate at once, and each dot's numbers come from that dot's rows alone
+(every sum runs along a dot's own rays or pixels, random draws are made for all dots beforehand).
+Cutting the dots into contiguous chunks, one per thread, therefore gives bit for bit the batch's
+result. numpy's array loops and the compiled loops (``nogil``) release the GIL, so the chunks
+run on separate cores.
+
+SYNOPSIS
+
+    >>> import numpy as np
+    >>> from tasks.vision.detection.dot_threads import over_dots, set_threads
+    >>> set_threads(2)
+    >>> over_dots(lambda a, b: (a + b,), 12, np.arange(12.0), np.ones(12))[0][-1]
+    12.0
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
+
+import numpy as np
+
+MAX_THREADS = 4
+MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
+
+_state: dict = {"threads": None, "pool": None, "pid": None, "workers": 0}
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, e.g. under ``taskset``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def set_threads(n: int | None) -> None:
+    """Use ``n`` threads for the per-dot stages (1: none besides the caller's); None: the default,
+    the available CPUs up to :data:`MAX_THREADS`."""
+    if n is not None and n < 1:
+        raise ValueError(f"threads must be at least 1, got {n}")
+    _state["threads"] = n
+
+
+def threads() -> int:
+    """Threads the per-dot stages use (see :func:`set_threads`)."""
+    n = _state["threads"]
+    return n if n is not None else min(available_cpus(), MAX_THREADS)
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The helper threads (created once per process: a forked child makes its own)."""
+    pool = _state["pool"]
+    if pool is None or _state["pid"] != os.getpid() or _state["workers"] < workers:
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fivecal-dots")
+        _state.update(pool=pool, pid=os.getpid(), workers=workers)
+    return pool
+
+
+def chunk_bounds(n: int, n_threads: int) -> list[tuple[int, int]]:
+    """Contiguous (start, stop) ranges covering 0…n, at most ``n_threads`` of them and each at least
+    :data:`MIN_DOTS_PER_CHUNK` long (one range when n is small)."""
+    k = max(1, min(n_threads, n // MIN_DOTS_PER_CHUNK))
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in pairwise(edges)]
+
+
+def over_dots(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **shared) -> tuple:
+    """``fn(*per_dot, **shared)`` with the per-dot arrays (first axis: the n dots; None passes
+    through) cut into chunks run on :func:`threads` threads; fn returns a tuple of arrays whose
+    first axis is the chunk's dots, and the chunks' tuples are joined along it."""
+    bounds = chunk_bounds(n, threads())
+    if len(bounds) == 1:
+        return fn(*per_dot, **shared)
+
+    def run(lo_hi: tuple[int, int]) -> tuple:
+        lo, hi = lo_hi
+        return fn(*(None if a is None else a[lo:hi] for a in per_dot), **shared)
+
+    futures = [_pool(len(bounds) - 1).submit(run, b) for b in bounds[1:]]
+    parts = [run(bounds[0])] + [f.result() for f in futures]
+    return tuple(np.concatenate(arrays, axis=0) for arrays in zip(*parts, strict=True))

@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from tasks.vision.detection.conics import ellipse_params, fit_conic_lsq, is_ellipse, sampson_distance
-from tasks.vision.detection.edges import N_DIRECTIONS, EdgeMap, direction_codes
+from tasks.vision.detection.edges import N_DIRECTIONS, EdgeMap, direction_codes, pixels_where
 
 
 @dataclass
@@ -139,7 +139,7 @@ def sample_diameters(em: EdgeMap, dirs: np.ndarray, dark_dots: bool, r_min: floa
 
     dirs: direction-code map of the filtered edges (:func:`tasks.vision.detection.edges.direction_codes`).
     """
-    vs, us = np.nonzero(dirs != 255)
+    vs, us = pixels_where(dirs != 255)
     g1 = np.stack([em.gx[vs, us], em.gy[vs, us]], axis=1).astype(float)
     mag = np.linalg.norm(g1, axis=1)
     strong = mag >= grad_threshold
@@ -185,7 +185,7 @@ def accumulate(centres: np.ndarray, radii: np.ndarray, shape: tuple[int, int], p
     ramp = np.arange(hb * wb, dtype=np.float32).reshape(hb, wb) * np.float32(1e-3 / (hb * wb))
     score = n3 + np.float32(0.01) * n + ramp
     peak = (n3 >= params.min_votes) & (score >= cv2.dilate(score, np.ones((3, 3), np.uint8)))
-    pv, pu = np.nonzero(peak)
+    pv, pu = pixels_where(peak)
     if len(pv) == 0:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
     votes = n3[pv, pu].astype(float)

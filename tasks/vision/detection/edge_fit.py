@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from tasks.vision.detection.dot_threads import over_dots
+from tasks.vision.detection.parallel import over_dots
 from tasks.vision.detection.stats import masked_median
 
 N_PARAMS = 10  # cx, cy, a, b, θ, L_in, L_out, s, g_u, g_v

@@ -44,8 +44,8 @@ from tasks.vision.detection.conics import (
     ransac_samples,
     sampson_distance,
 )
-from tasks.vision.detection.dot_threads import over_dots
 from tasks.vision.detection.edge_fit import fit_dot_edges
+from tasks.vision.detection.parallel import over_dots, resize_area
 from tasks.vision.detection.stats import masked_median
 
 INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
@@ -119,9 +119,7 @@ def crop_rois(image: np.ndarray, centres: np.ndarray, reach: float, level: int =
     if level > 1:  # whole blocks only, so that the level grid stays aligned with the origin
         u1 = u0 + max(level, (u1 - u0) // level * level)
         v1 = v0 + max(level, (v1 - v0) // level * level)
-        sub = image[v0:v1, u0:u1]
-        data = cv2.resize(sub, (sub.shape[1] // level, sub.shape[0] // level),
-                          interpolation=cv2.INTER_AREA)
+        data = resize_area(image[v0:v1, u0:u1], level)
     else:
         data = image[v0:v1, u0:u1]
     return Crop(data, (u0, v0), (h, w), level)

@@ -1,18 +1,18 @@
-"""The per-dot stages of the detector spread over threads, with results that do not depend on it.
+"""Detection work spread over threads, with results that do not depend on it.
 
 The sub-pixel stages (:mod:`tasks.vision.detection.subpixel`, :mod:`tasks.vision.detection.edge_fit`)
 work on all dots of a plate at once, and each dot's numbers come from that dot's rows alone
 (every sum runs along a dot's own rays or pixels, random draws are made for all dots beforehand).
 Cutting the dots into contiguous chunks, one per thread, therefore gives bit for bit the batch's
 result. numpy's array loops and the compiled loops (``nogil``) release the GIL, so the chunks
-run on separate cores.
+run on separate cores. :func:`resize_area` does the same for the area-averaged copies of the image
+(the coarse search's downsampling, the pass-2 crops of blurry rims), in blocks of rows.
 
 SYNOPSIS
 
     >>> import numpy as np
-    >>> from tasks.vision.detection.dot_threads import over_dots, set_threads
-    >>> set_threads(2)
-    >>> over_dots(lambda a, b: (a + b,), 12, np.arange(12.0), np.ones(12))[0][-1]
+    >>> from tasks.vision.detection.parallel import over_dots
+    >>> over_dots(lambda a, b: (a + b,), 12, np.arange(12.0), np.ones(12))[0][-1]   # 1 chunk per thread
     12.0
 """
 
@@ -23,6 +23,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
 
+import cv2
 import numpy as np
 
 MAX_THREADS = 4
@@ -85,3 +86,26 @@ def over_dots(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **s
     futures = [_pool(len(bounds) - 1).submit(run, b) for b in bounds[1:]]
     parts = [run(bounds[0])] + [f.result() for f in futures]
     return tuple(np.concatenate(arrays, axis=0) for arrays in zip(*parts, strict=True))
+
+
+def resize_area(image: np.ndarray, factor: int) -> np.ndarray:
+    """``cv2.resize(image, (W // factor, H // factor), interpolation=cv2.INTER_AREA)`` of an (H, W)
+    image. When factor divides H and W, each output row is the mean of its own ``factor`` input
+    rows (OpenCV's integer-scale path), so blocks of rows are resized on :func:`threads` threads
+    and give the same bits."""
+    h, w = image.shape[:2]
+    size = (w // factor, h // factor)
+    bounds = chunk_bounds(size[1], threads() if h % factor == 0 and w % factor == 0 else 1)
+    if len(bounds) == 1:
+        return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    out = np.empty((size[1], size[0], *image.shape[2:]), image.dtype)
+
+    def run(lo_hi: tuple[int, int]) -> None:
+        lo, hi = lo_hi
+        out[lo:hi] = cv2.resize(image[lo * factor : hi * factor], (size[0], hi - lo), interpolation=cv2.INTER_AREA)
+
+    futures = [_pool(len(bounds) - 1).submit(run, b) for b in bounds[1:]]
+    run(bounds[0])
+    for f in futures:
+        f.result()
+    return out

@@ -3,6 +3,7 @@
     .venv/bin/python bench/bench_detection.py            # 12 full-size images, 5 repeats
     .venv/bin/python bench/bench_detection.py --quick    # 4 images, 3 repeats
     .venv/bin/python bench/bench_detection.py --hough    # also time the HoughCircles baseline
+    taskset -c 0 .venv/bin/python bench/bench_detection.py --threads 1    # both detectors on one core
 
 Images are rendered by ``tasks.simulation.render`` (3072×2048, the prototype's two cameras and plates, lens
 distortion, defocus, vignetting, illumination gradient, shot and read noise) at poses with in-plane
@@ -13,7 +14,9 @@ the detected centres to ``true_dot_centres`` (the projected 3D dot centres). Bot
 the expected in-plane rotation (the commanded angle) and no scale hint unless ``--hint``.
 Wall times (``time.perf_counter``) and the process's CPU time (``time.process_time``, every
 thread; on a host busy with other jobs the wall time also counts the waits for a core) are
-both kept.
+both kept. ``--threads N`` sets OpenCV's threads (``cv2.setNumThreads``, findCirclesGrid's and the
+RRHT's OpenCV calls) and RRHT's own (:mod:`tasks.vision.detection.parallel`) to N; by default both use
+the CPUs the process may run on.
 Prints per-image rows, the summary ratios, and where RRHT's time goes.
 """
 
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import sys
 import time
@@ -35,6 +39,7 @@ from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate, facing_camera_pose
 from tasks.simulation.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
 from tasks.vision.detection import detect_grid
+from tasks.vision.detection.parallel import set_threads, threads
 
 DIST1 = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
 DIST2 = (-0.071, 0.132, -0.00009, 0.00015, -0.056)
@@ -79,10 +84,15 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--hint", action="store_true", help="pass px_per_mm_hint to every detector")
     ap.add_argument("--hough", action="store_true", help="also run the HoughCircles baseline")
+    ap.add_argument("--threads", type=int, default=None, help="OpenCV's and RRHT's threads (default: the CPUs)")
     args = ap.parse_args()
+    if args.threads is not None:
+        cv2.setNumThreads(args.threads)
+        set_threads(args.threads)
     n_img, reps = (4, 3) if args.quick else (args.images, args.repeat)
     dets = ["rrht", "blob"] + (["hough"] if args.hough else [])
-    print(f"cv2 {cv2.__version__}, numpy {np.__version__}, cv2 threads {cv2.getNumThreads()}; "
+    print(f"cv2 {cv2.__version__}, numpy {np.__version__}, cv2 threads {cv2.getNumThreads()}, RRHT threads "
+          f"{threads()}, CPUs {len(os.sched_getaffinity(0))}; "
           f"{n_img} images, {reps} repeats, hint={args.hint}")
     rows = []
     stage_sums: dict[str, list[float]] = {}

@@ -113,3 +113,37 @@ def test_pixels_where_is_numpys_nonzero():
     for mask in (m, m.astype(np.uint8) * 255):
         got, want = pixels_where(mask), np.nonzero(mask)
         assert all(np.array_equal(g, w) and g.dtype == w.dtype for g, w in zip(got, want, strict=True))
+
+
+def test_by_default_only_the_cpus_no_other_thread_holds_are_used(monkeypatch, restore_threads):
+    parallel.set_threads(None)
+    monkeypatch.setattr(parallel, "available_cpus", lambda: 2)
+    for runnable, want in ((1, 2), (2, 1), (9, 1)):
+        monkeypatch.setattr(parallel, "runnable_threads", lambda r=runnable: r)
+        assert parallel.threads() == want
+    monkeypatch.setattr(parallel, "available_cpus", lambda: 1)
+    monkeypatch.setattr(parallel, "runnable_threads", lambda: 1)
+    assert parallel.threads() == 1
+    parallel.set_threads(3)
+    assert parallel.threads() == 3
+
+
+def test_nested_and_concurrent_callers_run_their_work_whole_without_waiting(restore_threads):
+    parallel.set_threads(2)
+    a = np.arange(40.0)
+
+    def inner(x):  # a chunk that spreads its own work: the helpers are taken, it runs whole
+        return parallel.over_dots(lambda y: (y + 1,), len(x), x)
+
+    assert np.array_equal(parallel.over_dots(inner, 40, a)[0], a + 1)
+    results = {}
+
+    def caller(k):
+        results[k] = parallel.over_dots(lambda y: (y * k,), 40, a)[0]
+
+    workers = [threading.Thread(target=caller, args=(k,)) for k in range(4)]
+    for t in workers:
+        t.start()
+    for t in workers:
+        t.join(timeout=30)
+    assert all(np.array_equal(results[k], a * k) for k in range(4))

@@ -17,7 +17,7 @@ SYNOPSIS
 
     >>> import numpy as np
     >>> from tasks.vision.detection.parallel import over_dots
-    >>> over_dots(lambda a, b: (a + b,), 12, np.arange(12.0), np.ones(12))[0][-1]   # 1 chunk per thread
+    >>> float(over_dots(lambda a, b: (a + b,), 12, np.arange(12.0), np.ones(12))[0][-1])
     12.0
 """
 
@@ -79,6 +79,8 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     """The helper threads (created once per process: a forked child makes its own)."""
     pool = _state["pool"]
     if pool is None or _state["pid"] != os.getpid() or _state["workers"] < workers:
+        if pool is not None and _state["pid"] == os.getpid():
+            pool.shutdown(wait=False)  # too few helpers: replaced by a larger pool
         pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fivecal-dots")
         _state.update(pool=pool, pid=os.getpid(), workers=workers)
     return pool

@@ -475,9 +475,10 @@ def curvature_correction(s2: np.ndarray, ang: np.ndarray, axes: np.ndarray, thet
     return s2 / (2.0 * rho_c)
 
 
-def _pass1(centres, axes, theta, out_lim, samples, *, crop, sign, coarse_factor, p):
-    """Robust rim ellipses and blur σ per dot (see module docstring); samples: (K, H, 5) RANSAC
-    draws (:func:`ransac_samples`)."""
+def _pass1_profiles(crop, centres, axes, theta, out_lim, coarse_factor, p):
+    """Pass-1 rays of K dots, all at once (one ``cv2.remap``, which spreads itself over OpenCV's
+    threads): (grey levels (K, R1, T1), t (K, R1, T1) px, inside (K, R1, T1), ray angles (R1,),
+    search band (K,) ± px)."""
     ang = np.arange(p.pass1_rays) * (2 * np.pi / p.pass1_rays)
     rho0 = ellipse_radius_along(centres, axes, theta, ang)  # (K, R1)
     band = np.maximum(np.maximum(4.0, 2.0 * coarse_factor), 0.35 * axes[:, 1])  # (K,) ± px
@@ -485,6 +486,12 @@ def _pass1(centres, axes, theta, out_lim, samples, *, crop, sign, coarse_factor,
     t = rho0[:, :, None] + u[None, None, :] * band[:, None, None]
     t = np.clip(t, 0.25 * axes[:, 1, None, None], out_lim[:, None, None])
     prof, inside = sample_profiles(crop, centres, ang, t)
+    return prof, t, inside, ang, band
+
+
+def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p):
+    """Robust rim ellipses and blur σ per dot (see module docstring) from the pass-1 rays
+    (:func:`_pass1_profiles`); samples: (K, H, 5) RANSAC draws (:func:`ransac_samples`)."""
     tp, peak, fwhm = derivative_peaks(prof, t, inside, sign, 2.0 * band / (p.pass1_samples - 1))
     good = np.isfinite(peak) & (peak > 0)
     med_peak = masked_median(peak, good, default=np.inf)
@@ -637,8 +644,9 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     crop1 = crop_rois(image, centres, reach)
     t0 = clock()
     samples = ransac_samples(k, p.pass1_rays, p.ransac_hypotheses, rng)
-    cen, axs, ths, sigma = over_dots(_pass1, k, centres, axes, theta, out_lim, samples, crop=crop1, sign=sign,
-                                     coarse_factor=coarse_factor, p=p)
+    prof1, t1, inside1, ang1, band1 = _pass1_profiles(crop1, centres, axes, theta, out_lim, coarse_factor, p)
+    cen, axs, ths, sigma = over_dots(_pass1, k, prof1, t1, inside1, band1, centres, axes, theta, samples, ang=ang1,
+                                     sign=sign, p=p)
     t_fit = clock() - t0
     level = int(np.clip(np.floor(np.median(sigma) / p.sigma_per_level), 1, p.max_level))
     crop2 = crop1 if level == 1 else crop_rois(image, centres, reach, level)

@@ -21,7 +21,7 @@ from tasks.simulation.detector_stress import errors_up_to_symmetry
 from tasks.simulation.render import ImagingConditions, render_plate_image, true_dot_centres
 from tasks.vision.detection import DETECTORS, GridDetection, detect_grid
 from tasks.vision.detection.chaincode import filter_edges
-from tasks.vision.detection.conics import ellipse_params, fit_conic_lsq, ransac_ellipse
+from tasks.vision.detection.conics import ellipse_params, fit_conic_lsq, ransac_ellipse, ransac_samples
 from tasks.vision.detection.framework import FrameworkParams, detect_rrht
 from tasks.vision.detection.grid import build_lattice, order_grid, reduce_lattice
 from tasks.vision.detection.perspective import centre_bias, correct_bias
@@ -334,7 +334,7 @@ def test_batched_ellipse_fit_recovers_known_ellipses_and_ransac_drops_outliers()
     y[:, :15] = centre[:, 1:2] + 1.3 * (y[:, :15] - centre[:, 1:2])
     scale = np.full(k, 30.0)
     origin = np.zeros((k, 2))
-    inl = ransac_ellipse(x / 30, y / 30, np.ones((k, n), bool), np.full(k, 0.5 / 30), 32, rng)
+    inl = ransac_ellipse(x / 30, y / 30, np.ones((k, n), bool), np.full(k, 0.5 / 30), ransac_samples(k, n, 32, rng))
     assert not inl[:, :15].any() and inl[:, 15:].mean() > 0.95
     conic = fit_conic_lsq(x / 30, y / 30, inl.astype(float))
     c, axes, _ = ellipse_params(conic, origin, scale)

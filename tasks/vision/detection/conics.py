@@ -155,28 +155,34 @@ def ellipse_radius_along(
     return a * b / np.sqrt((b * np.cos(phi)) ** 2 + (a * np.sin(phi)) ** 2)
 
 
+def ransac_samples(k: int, n: int, n_hypotheses: int, rng: np.random.Generator) -> np.ndarray:
+    """Minimal samples for :func:`ransac_ellipse`: (K, H, 5) indices into K sets of n points ordered
+    by angle around each set's centre (rays), 5 roughly equally spaced indices with a random start
+    and jitter each, so that the samples are well spread. Drawn for all sets at once, so that any
+    subset of the sets can then be fitted on its own with the same draws."""
+    start = rng.integers(0, n, size=(k, n_hypotheses, 1))
+    spacing = np.arange(5) * (n / 5.0)
+    jitter = rng.uniform(-0.3, 0.3, size=(k, n_hypotheses, 5)) * (n / 5.0)
+    return (start + np.round(spacing + jitter).astype(int)) % n
+
+
 def ransac_ellipse(
     x: np.ndarray,
     y: np.ndarray,
     valid: np.ndarray,
     threshold: np.ndarray | float,
-    n_hypotheses: int,
-    rng: np.random.Generator,
+    samples: np.ndarray,
 ) -> np.ndarray:
     """RANSAC over minimal 5-point ellipses, all K sets at once.
 
-    x, y, valid: (K, N) normalised points ordered by angle around each set's centre (rays), so
-    that well-spread minimal samples are drawn as 5 roughly equally spaced indices with a random
-    start and jitter. threshold: Sampson inlier distance in the same normalised units (scalar or
-    (K,)). Returns the (K, N) inlier mask of the best hypothesis per set (all False if none).
+    x, y, valid: (K, N) normalised points ordered by angle around each set's centre (rays).
+    samples: (K, H, 5) indices of the H minimal samples per set (:func:`ransac_samples`).
+    threshold: Sampson inlier distance in the same normalised units (scalar or (K,)). Returns the
+    (K, N) inlier mask of the best hypothesis per set (all False if none).
     """
-    k, n = x.shape
-    start = rng.integers(0, n, size=(k, n_hypotheses, 1))
-    spacing = np.arange(5) * (n / 5.0)
-    jitter = rng.uniform(-0.3, 0.3, size=(k, n_hypotheses, 5)) * (n / 5.0)
-    idx = (start + np.round(spacing + jitter).astype(int)) % n  # (K, H, 5)
+    k = x.shape[0]
     kk = np.arange(k)[:, None, None]
-    xs, ys, vs = x[kk, idx], y[kk, idx], valid[kk, idx]
+    xs, ys, vs = x[kk, samples], y[kk, samples], valid[kk, samples]
     xs = np.where(vs, xs, 0.0)
     ys = np.where(vs, ys, 0.0)
     conics = conic_through_five(xs, ys)  # (K, H, 6)

@@ -33,14 +33,22 @@ def canny_edges(image: np.ndarray, high_percentile: float = 99.0, high_fraction:
     """
     dx = cv2.Sobel(image, cv2.CV_16S, 1, 0, ksize=3)
     dy = cv2.Sobel(image, cv2.CV_16S, 0, 1, ksize=3)
-    # percentile and median from a strided subsample: cheap and precise enough for thresholds
-    sub = cv2.magnitude(dx[::2, ::2].astype(np.float32), dy[::2, ::2].astype(np.float32)).ravel()
+    # percentile and median from a strided subsample: cheap and precise enough for thresholds; sorted
+    # once, both are a lookup (numpy's selection on the unsorted array costs three times the sort)
+    sub = np.sort(cv2.magnitude(dx[::2, ::2].astype(np.float32), dy[::2, ::2].astype(np.float32)).ravel())
     hi_p = float(np.percentile(sub, high_percentile)) if sub.size else 0.0
     med = float(np.median(sub)) if sub.size else 0.0
     high = max(min_high, 6.0 * med, high_fraction * hi_p)
     low = 0.5 * high
     edges = cv2.Canny(dx, dy, low, high, L2gradient=True)
     return EdgeMap(edges=edges, gx=dx, gy=dy, low=low, high=high)
+
+
+def pixels_where(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows v, columns u) of the non-zero pixels of a 2-D map, in row-major order: ``np.nonzero``'s
+    result, through the flat indices (several times faster on a whole image)."""
+    flat = np.flatnonzero(mask if mask.dtype == bool else mask != 0)
+    return np.divmod(flat, mask.shape[1])
 
 
 N_DIRECTIONS = 64  # gradient direction codes: code k ↔ angle 2πk/64 from +u towards +v
@@ -52,7 +60,7 @@ def direction_codes(em: EdgeMap, edges: np.ndarray) -> np.ndarray:
     One uint8 gather then answers both "is this an edge pixel" and "where does its gradient
     point", which is what the Hough sampling and the rim search ask millions of times.
     """
-    vs, us = np.nonzero(edges)
+    vs, us = pixels_where(edges)
     phase = np.arctan2(em.gy[vs, us].astype(float), em.gx[vs, us].astype(float))  # rad in (−π, π]
     code = np.rint(phase * (N_DIRECTIONS / (2 * np.pi))).astype(np.int64) % N_DIRECTIONS
     out = np.full(edges.shape, 255, dtype=np.uint8)

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from tasks.vision.detection.conics import conic_centre_h
+from tasks.vision.detection.parallel import over_dots
 
 
 def fit_homography(plate_xy_mm: np.ndarray, image_uv_px: np.ndarray) -> np.ndarray:
@@ -100,10 +101,18 @@ def correct_bias_local(ellipse_centres_px: np.ndarray, plate_xy_mm: np.ndarray, 
     """
     near = np.all(np.abs(row_col[:, None, :] - row_col[None, :, :]) <= 1, axis=2)  # (N, N)
     corrected = ellipse_centres_px
-    for _ in range(iterations):
-        hs = local_homographies(plate_xy_mm, corrected, near)
-        corrected = ellipse_centres_px - centre_bias_each(hs, plate_xy_mm, radius_mm)
+    for _ in range(iterations):  # each dot's homography and bias on its own: spread over the threads
+        bias, = over_dots(_local_bias, len(near), near, plate_xy_mm, all_xy_mm=plate_xy_mm, all_uv_px=corrected,
+                          radius_mm=radius_mm)
+        corrected = ellipse_centres_px - bias
     return corrected
+
+
+def _local_bias(member: np.ndarray, own_xy_mm: np.ndarray, *, all_xy_mm: np.ndarray, all_uv_px: np.ndarray,
+                radius_mm: float) -> tuple[np.ndarray]:
+    """(bias (K, 2) px,) of K dots at own_xy_mm (K, 2), each through the homography of the dots that
+    ``member`` (K, M) selects among all M (all_xy_mm, all_uv_px)."""
+    return (centre_bias_each(local_homographies(all_xy_mm, all_uv_px, member), own_xy_mm, radius_mm),)
 
 
 def centre_bias_each(hs: np.ndarray, plate_xy_mm: np.ndarray, radius_mm: float) -> np.ndarray:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from tasks.vision.detection.parallel import resize_area
+
 
 def check_image(image: np.ndarray) -> np.ndarray:
     """Validate a grayscale 8-bit image; raise ValueError with a clear message otherwise."""
@@ -28,8 +30,7 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
     """Area-average the image by an integer factor (no-op for 1)."""
     if factor <= 1:
         return image
-    h, w = image.shape
-    return cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    return resize_area(image, factor)
 
 
 def coarse_to_full(uv: np.ndarray, factor: int) -> np.ndarray:

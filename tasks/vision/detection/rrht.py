@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from tasks.vision.detection.conics import ellipse_params, fit_conic_lsq, is_ellipse, sampson_distance
-from tasks.vision.detection.edges import N_DIRECTIONS, EdgeMap, direction_codes
+from tasks.vision.detection.edges import N_DIRECTIONS, EdgeMap, direction_codes, pixels_where
 
 
 @dataclass
@@ -127,19 +127,24 @@ def _first_rim_points(centres, radii, cs, sn, steps, ray_code, flat, wp, h, w, p
     return x, y, has
 
 
-def _padded(dirs: np.ndarray, pad: int) -> tuple[np.ndarray, int]:
-    """Direction-code map padded with 255 (no edge) so that ray lookups need no bounds checks."""
+def _padded(dirs: np.ndarray, pad: int, have: tuple[np.ndarray, int, int] | None = None) -> tuple[np.ndarray, int, int]:
+    """Direction-code map padded with 255 (no edge) so that ray lookups need no bounds checks:
+    (flat map, row width, padding). ``have``: the map padded already, used when its padding suffices."""
+    if have is not None and have[2] >= pad:
+        return have
     big = cv2.copyMakeBorder(dirs, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=255)
-    return big.ravel(), big.shape[1]
+    return big.ravel(), big.shape[1], pad
 
 
 def sample_diameters(em: EdgeMap, dirs: np.ndarray, dark_dots: bool, r_min: float, r_max: float,
-                     grad_threshold: float, params: RRHTParams, rng: np.random.Generator):
+                     grad_threshold: float, params: RRHTParams, rng: np.random.Generator,
+                     padded: tuple[np.ndarray, int, int] | None = None):
     """Gradient-guided diameter samples: (centres (S, 2), radii (S,), n_seeds) in coarse px.
 
-    dirs: direction-code map of the filtered edges (:func:`tasks.vision.detection.edges.direction_codes`).
+    dirs: direction-code map of the filtered edges (:func:`tasks.vision.detection.edges.direction_codes`);
+    padded: that map padded already (:func:`_padded`), used when its padding suffices.
     """
-    vs, us = np.nonzero(dirs != 255)
+    vs, us = pixels_where(dirs != 255)
     g1 = np.stack([em.gx[vs, us], em.gy[vs, us]], axis=1).astype(float)
     mag = np.linalg.norm(g1, axis=1)
     strong = mag >= grad_threshold
@@ -153,8 +158,7 @@ def sample_diameters(em: EdgeMap, dirs: np.ndarray, dark_dots: bool, r_min: floa
     g1 /= np.maximum(mag, 1e-6)[:, None]
     inward = -g1 if dark_dots else g1
     t_all = np.arange(max(2.0, 2 * r_min - 1), 2 * r_max + 2, 1.0)  # (T,) candidate diameters
-    pad = int(t_all[-1]) + 2
-    flat, wp = _padded(dirs, pad)
+    flat, wp, pad = _padded(dirs, int(t_all[-1]) + 2, padded)
     opposite = (dirs[vs, us].astype(np.int16) + N_DIRECTIONS // 2) % N_DIRECTIONS
     tol = int(np.degrees(np.arccos(params.antiparallel_cos)) / (360.0 / N_DIRECTIONS))
     d = _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol)
@@ -185,7 +189,7 @@ def accumulate(centres: np.ndarray, radii: np.ndarray, shape: tuple[int, int], p
     ramp = np.arange(hb * wb, dtype=np.float32).reshape(hb, wb) * np.float32(1e-3 / (hb * wb))
     score = n3 + np.float32(0.01) * n + ramp
     peak = (n3 >= params.min_votes) & (score >= cv2.dilate(score, np.ones((3, 3), np.uint8)))
-    pv, pu = np.nonzero(peak)
+    pv, pu = pixels_where(peak)
     if len(pv) == 0:
         return np.zeros((0, 2)), np.zeros(0), np.zeros(0)
     votes = n3[pv, pu].astype(float)
@@ -202,19 +206,19 @@ def accumulate(centres: np.ndarray, radii: np.ndarray, shape: tuple[int, int], p
 
 
 def fit_candidates(dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray, dark_dots: bool,
-                   params: RRHTParams):
+                   params: RRHTParams, padded: tuple[np.ndarray, int, int] | None = None):
     """Least-squares ellipse and rim ratio for each candidate (batched over candidates).
 
     Along ``n_rays`` rays from each candidate centre, the first edge pixel in [0.4 r, 1.7 r]
     whose gradient points along the ray (outward for dark dots, within ±45°) is a rim point.
     Returns (centre (K, 2), axes (K, 2), theta (K,), rim_ratio (K,)), NaN where the fit fails.
+    padded: the map padded already (:func:`_padded`), used when its padding suffices.
     """
     nr = params.n_rays
     ang = np.arange(nr) * (2 * np.pi / nr)
     cs, sn = np.cos(ang), np.sin(ang)
     steps = np.linspace(0.4, 1.7, 27)  # relative to r
-    pad = int(np.ceil(1.7 * radii.max())) + 2
-    flat, wp = _padded(dirs, pad)
+    flat, wp, pad = _padded(dirs, int(np.ceil(1.7 * radii.max())) + 2, padded)
     h, w = dirs.shape  # a refitted centre may lie far off the map: rays off it find nothing
     ray_code = np.rint(ang * (N_DIRECTIONS / (2 * np.pi))).astype(np.int16)
     if not dark_dots:
@@ -262,7 +266,9 @@ def rrht_circles(em: EdgeMap, edges: np.ndarray, dark_dots: bool, r_min: float, 
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     dirs = direction_codes(em, edges)
-    c, r, n_seeds = sample_diameters(em, dirs, dark_dots, r_min, r_max, em.high, params, rng)
+    # padded once for the longest walk (a diameter up to 2 r_max + 2), which also covers the rim rays
+    padded = _padded(dirs, int(2 * r_max + 2) + 2)
+    c, r, n_seeds = sample_diameters(em, dirs, dark_dots, r_min, r_max, em.high, params, rng, padded)
     if len(c) == 0:
         return CoarseCircles.empty()
     rate = min(1.0, params.n_samples / max(n_seeds, 1))
@@ -272,12 +278,12 @@ def rrht_circles(em: EdgeMap, edges: np.ndarray, dark_dots: bool, r_min: float, 
         timings["sampling"] = timings.get("sampling", 0.0) + t1 - t0
     if len(c) == 0:
         return CoarseCircles.empty()
-    centre, axes, theta, ratio = fit_candidates(dirs, c, r, dark_dots, params)
+    centre, axes, theta, ratio = fit_candidates(dirs, c, r, dark_dots, params, padded)
     # second iteration from the fitted ellipses: rays now start at the right centre
     again = np.isfinite(centre).all(axis=1) & np.isfinite(axes).all(axis=1) & (ratio > 0.3)
     if again.any():
         r2 = np.clip(np.sqrt(axes[again, 0] * axes[again, 1]), r_min, r_max)
-        c2, a2, t2, q2 = fit_candidates(dirs, centre[again], r2, dark_dots, params)
+        c2, a2, t2, q2 = fit_candidates(dirs, centre[again], r2, dark_dots, params, padded)
         better = q2 >= ratio[again]
         ia = np.flatnonzero(again)[better]
         centre[ia], axes[ia], theta[ia], ratio[ia] = c2[better], a2[better], t2[better], q2[better]

@@ -41,9 +41,11 @@ from tasks.vision.detection.conics import (
     fit_conic_lsq,
     is_ellipse,
     ransac_ellipse,
+    ransac_samples,
     sampson_distance,
 )
 from tasks.vision.detection.edge_fit import fit_dot_edges
+from tasks.vision.detection.parallel import over_dots, resize_area
 from tasks.vision.detection.stats import masked_median
 
 INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
@@ -117,9 +119,7 @@ def crop_rois(image: np.ndarray, centres: np.ndarray, reach: float, level: int =
     if level > 1:  # whole blocks only, so that the level grid stays aligned with the origin
         u1 = u0 + max(level, (u1 - u0) // level * level)
         v1 = v0 + max(level, (v1 - v0) // level * level)
-        sub = image[v0:v1, u0:u1]
-        data = cv2.resize(sub, (sub.shape[1] // level, sub.shape[0] // level),
-                          interpolation=cv2.INTER_AREA)
+        data = resize_area(image[v0:v1, u0:u1], level)
     else:
         data = image[v0:v1, u0:u1]
     return Crop(data, (u0, v0), (h, w), level)
@@ -475,8 +475,10 @@ def curvature_correction(s2: np.ndarray, ang: np.ndarray, axes: np.ndarray, thet
     return s2 / (2.0 * rho_c)
 
 
-def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
-    """Robust rim ellipses and blur σ per dot (see module docstring)."""
+def _pass1_profiles(crop, centres, axes, theta, out_lim, coarse_factor, p):
+    """Pass-1 rays of K dots, all at once (one ``cv2.remap``, which spreads itself over OpenCV's
+    threads): (grey levels (K, R1, T1), t (K, R1, T1) px, inside (K, R1, T1), ray angles (R1,),
+    search band (K,) ± px)."""
     ang = np.arange(p.pass1_rays) * (2 * np.pi / p.pass1_rays)
     rho0 = ellipse_radius_along(centres, axes, theta, ang)  # (K, R1)
     band = np.maximum(np.maximum(4.0, 2.0 * coarse_factor), 0.35 * axes[:, 1])  # (K,) ± px
@@ -484,6 +486,12 @@ def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
     t = rho0[:, :, None] + u[None, None, :] * band[:, None, None]
     t = np.clip(t, 0.25 * axes[:, 1, None, None], out_lim[:, None, None])
     prof, inside = sample_profiles(crop, centres, ang, t)
+    return prof, t, inside, ang, band
+
+
+def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p):
+    """Robust rim ellipses and blur σ per dot (see module docstring) from the pass-1 rays
+    (:func:`_pass1_profiles`); samples: (K, H, 5) RANSAC draws (:func:`ransac_samples`)."""
     tp, peak, fwhm = derivative_peaks(prof, t, inside, sign, 2.0 * band / (p.pass1_samples - 1))
     good = np.isfinite(peak) & (peak > 0)
     med_peak = masked_median(peak, good, default=np.inf)
@@ -495,7 +503,7 @@ def _pass1(crop, centres, axes, theta, sign, out_lim, coarse_factor, p, rng):
     xn = (x - centres[:, 0:1]) / scale[:, None]
     yn = (y - centres[:, 1:2]) / scale[:, None]
     thr = np.maximum(1.0, 0.03 * axes[:, 0]) / scale
-    inl = ransac_ellipse(xn, yn, valid, thr, p.ransac_hypotheses, rng)
+    inl = ransac_ellipse(xn, yn, valid, thr, samples)
     conic = fit_conic_lsq(xn, yn, inl.astype(float), sampson_iterations=1)
     ok = is_ellipse(conic) & (inl.sum(axis=1) >= 10)
     c1, ax1, th1 = ellipse_params(conic, centres, scale)
@@ -536,11 +544,10 @@ def shading(prof, t, te, s, ok, ang, contrast, minor_axes) -> np.ndarray:
     return np.hypot(grad[:, 0], grad[:, 1]) * minor_axes / np.where(np.isfinite(contrast), contrast, np.inf)
 
 
-def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | None = None):
-    """Precise rim points along pass-2 rays: (x, y, valid (K, R), s (K, R), ang (R,), gain field).
-
-    gain: the image's gain field, fitted here when None (the first pass sees every dot).
-    """
+def _pass2_profiles(crop, cen, axs, ths, sigma, gap_ratio, p):
+    """Pass-2 rays of K dots: (grey levels (K, R, T), t (K, R, T) px along the rays, samples inside
+    the image (K, R, T), ray angles (R,), window half-widths (K,) px, window centres (K, R) px).
+    The ray count follows the median dot, the window length the widest window."""
     lv = crop.level
     a_med = float(np.median(axs[:, 0]))
     n_rays = int(np.clip(round(p.rays_per_px * 2 * np.pi * a_med / lv), p.min_rays, p.max_rays))
@@ -557,10 +564,15 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | Non
     rho = ellipse_radius_along(cen, axs, ths, ang)  # (K, R)
     t = rho[:, :, None] + u2[None, None, :] * half_w[:, None, None]
     prof, inside = sample_profiles(crop, cen, ang, t)
+    return prof, t, inside, ang, half_w, rho
+
+
+def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang, gain, p):
+    """Precise rim points of K dots from their pass-2 rays (:func:`_pass2_profiles`): (x, y,
+    valid (K, R), s (K, R)). gain: the image's gain field (used with ``p.flat_field``)."""
     if p.flat_field:
-        if gain is None:
-            gain = fit_gain_field(prof, t, inside.all(axis=2), cen, ang)
         prof = flatten_profiles(prof, t, cen, ang, gain)
+    n2 = t.shape[2]
     ne = max(2, n2 // 6)
     i_in = prof[..., :ne].mean(axis=2)
     i_out = prof[..., -ne:].mean(axis=2)
@@ -586,7 +598,21 @@ def _pass2(crop, cen, axs, ths, sigma, sign, gap_ratio, p, gain: GainField | Non
         te = te + curvature_correction(s2, ang, axs, ths)
     x = cen[:, 0:1] + np.cos(ang)[None, :] * te
     y = cen[:, 1:2] + np.sin(ang)[None, :] * te
-    return x, y, valid, s, ang, gain
+    return x, y, valid, s
+
+
+def _rim_ellipses(x, y, valid, s, c0, a0, *, n_rays):
+    """Robust LSQ ellipses through K dots' rim points (x, y, valid (K, R) px; rim blur s (K, R) px;
+    ray origins c0 (K, 2) px and semi-axes a0 (K, 2) px): (fitted, centres (K, 2), semi-axes (K, 2),
+    angles (K,), residual RMS (K,) px, median s (K,) px, support (K,): inlier rays / n_rays)."""
+    scale = np.maximum(a0[:, 0], 1.0)
+    conic, inl, dist = robust_ellipse_fit(x, y, valid, c0, scale)
+    okp = is_ellipse(conic) & (inl.sum(axis=1) >= 12)
+    cn, an, tn = ellipse_params(conic, c0, scale)
+    okp &= np.isfinite(cn).all(axis=1) & np.isfinite(an).all(axis=1)
+    rms = np.sqrt((np.where(inl, dist, 0.0) ** 2).sum(axis=1) / np.maximum(inl.sum(axis=1), 1))
+    s_med = masked_median(s, valid & np.isfinite(s))
+    return okp, cn, an, tn, rms, s_med, inl.sum(axis=1) / n_rays
 
 
 def rim_reach_px(major_semi_axes_px: np.ndarray, gap_ratio: float) -> np.ndarray:
@@ -612,15 +638,18 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     clock = time.perf_counter
     t_begin = clock()
     sign = 1.0 if dark_dots else -1.0
+    k = len(centres)
     out_lim = rim_reach_px(axes[:, 0], gap_ratio)
     reach = float(out_lim.max()) + 4.0 * coarse_factor
     crop1 = crop_rois(image, centres, reach)
     t0 = clock()
-    cen, axs, ths, sigma = _pass1(crop1, centres, axes, theta, sign, out_lim, coarse_factor, p, rng)
+    samples = ransac_samples(k, p.pass1_rays, p.ransac_hypotheses, rng)
+    prof1, t1, inside1, ang1, band1 = _pass1_profiles(crop1, centres, axes, theta, out_lim, coarse_factor, p)
+    cen, axs, ths, sigma = over_dots(_pass1, k, prof1, t1, inside1, band1, centres, axes, theta, samples, ang=ang1,
+                                     sign=sign, p=p)
     t_fit = clock() - t0
     level = int(np.clip(np.floor(np.median(sigma) / p.sigma_per_level), 1, p.max_level))
     crop2 = crop1 if level == 1 else crop_rois(image, centres, reach, level)
-    k = len(centres)
     cen, axs, ths = cen.copy(), axs.copy(), ths.copy()
     ok = np.zeros(k, bool)
     rms = np.full(k, np.nan)
@@ -628,28 +657,24 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     s_med = np.full(k, np.nan)
     todo = np.arange(k)
     gain = None
-    n_passes = 0
     for _ in range(p.max_refine):
-        n_passes += 1
-        c0, a0, h0 = cen[todo], axs[todo], ths[todo]
-        x, y, valid, s, ang, gain = _pass2(crop2, c0, a0, h0, sigma[todo], sign, gap_ratio, p, gain)
+        c0, a0, h0, s0 = cen[todo], axs[todo], ths[todo], sigma[todo]
+        prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, c0, a0, h0, s0, gap_ratio, p)
+        if p.flat_field and gain is None:  # fitted on the first pass, which sees every dot
+            gain = fit_gain_field(prof, t, inside.all(axis=2), c0, ang)
+        x, y, valid, s = over_dots(_pass2_rims, len(todo), prof, t, inside, c0, a0, h0, s0, half_w, rho,
+                                   sign=sign, ang=ang, gain=gain, p=p)
         t0 = clock()
-        scale = np.maximum(a0[:, 0], 1.0)
-        conic, inl, dist = robust_ellipse_fit(x, y, valid, c0, scale)
-        okp = is_ellipse(conic) & (inl.sum(axis=1) >= 12)
-        cn, an, tn = ellipse_params(conic, c0, scale)
-        okp &= np.isfinite(cn).all(axis=1) & np.isfinite(an).all(axis=1)
+        okp, cn, an, tn, rms_p, s_med_p, support_p = over_dots(_rim_ellipses, len(todo), x, y, valid, s, c0, a0,
+                                                               n_rays=len(ang))
         shift = np.linalg.norm(np.where(okp[:, None], cn - c0, 0.0), axis=1)
         upd = todo[okp]
         cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
-        ok[todo] = okp
-        rms[todo] = np.sqrt((np.where(inl, dist, 0.0) ** 2).sum(axis=1) / np.maximum(inl.sum(axis=1), 1))
-        s_med[todo] = masked_median(s, valid & np.isfinite(s))
-        support[todo] = inl.sum(axis=1) / len(ang)
+        ok[todo], rms[todo], s_med[todo], support[todo] = okp, rms_p, s_med_p, support_p
         t_fit += clock() - t0
         # rays cast from an off-centre point cross a strongly blurred, curved rim obliquely, with
         # an error of order shift·(σ/b)²: dots where that can still matter get another pass
-        oblique = shift * (sigma[todo] / np.maximum(an[:, 1], 1.0)) ** 2
+        oblique = shift * (s0 / np.maximum(an[:, 1], 1.0)) ** 2
         todo = todo[okp & (oblique > p.refine_bias_px)]
         if len(todo) == 0:
             break

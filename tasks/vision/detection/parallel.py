@@ -1,0 +1,141 @@
+"""Detection work spread over threads, with results that do not depend on it.
+
+The sub-pixel stages (:mod:`tasks.vision.detection.subpixel`, :mod:`tasks.vision.detection.edge_fit`)
+work on all dots of a plate at once, and each dot's numbers come from that dot's rows alone
+(every sum runs along a dot's own rays or pixels, random draws are made for all dots beforehand).
+Cutting the dots into contiguous chunks, one per thread, therefore gives bit for bit the batch's
+result. numpy's array loops and the compiled loops (``nogil``) release the GIL, so the chunks
+run on separate cores. :func:`resize_area` does the same for the area-averaged copies of the image
+(the coarse search's downsampling, the pass-2 crops of blurry rims), in blocks of rows.
+
+By default the work is spread over the CPUs that are free at that moment (no other runnable
+thread on them, ``/proc/loadavg``): on a machine busy with other jobs, or with one detection per
+core already (the pipeline's task threads, Dask workers), a helper thread would only wait for a
+core and add switching. One caller at a time spreads its work; others run theirs whole.
+
+SYNOPSIS
+
+    >>> import numpy as np
+    >>> from tasks.vision.detection.parallel import over_dots
+    >>> float(over_dots(lambda a, b: (a + b,), 12, np.arange(12.0), np.ones(12))[0][-1])
+    12.0
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
+
+import cv2
+import numpy as np
+
+MAX_THREADS = 4
+MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
+
+_state: dict = {"threads": None, "pool": None, "pid": None, "workers": 0}
+_spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, e.g. under ``taskset``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def runnable_threads() -> int:
+    """Threads of the whole machine that are running or waiting for a CPU now, the caller included
+    (``/proc/loadavg``; 1 where that cannot be read)."""
+    try:
+        with open("/proc/loadavg") as f:
+            return max(1, int(f.read().split()[3].split("/")[0]))
+    except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
+        return 1
+
+
+def set_threads(n: int | None) -> None:
+    """Use ``n`` threads (1: none besides the caller's) whatever else runs; None: the default, see
+    :func:`threads`."""
+    if n is not None and n < 1:
+        raise ValueError(f"threads must be at least 1, got {n}")
+    _state["threads"] = n
+
+
+def threads() -> int:
+    """Threads to spread work over now: :func:`set_threads`'s number, or by default the CPUs this
+    process may run on (at most :data:`MAX_THREADS`) less those that other runnable threads hold."""
+    n = _state["threads"]
+    if n is not None:
+        return n
+    cpus = min(available_cpus(), MAX_THREADS)
+    return 1 if cpus == 1 else max(1, min(cpus, cpus + 1 - runnable_threads()))
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The helper threads (created once per process: a forked child makes its own)."""
+    pool = _state["pool"]
+    if pool is None or _state["pid"] != os.getpid() or _state["workers"] < workers:
+        if pool is not None and _state["pid"] == os.getpid():
+            pool.shutdown(wait=False)  # too few helpers: replaced by a larger pool
+        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fivecal-dots")
+        _state.update(pool=pool, pid=os.getpid(), workers=workers)
+    return pool
+
+
+def chunk_bounds(n: int, n_threads: int) -> list[tuple[int, int]]:
+    """Contiguous (start, stop) ranges covering 0…n, at most ``n_threads`` of them and each at least
+    :data:`MIN_DOTS_PER_CHUNK` long (one range when n is small)."""
+    k = max(1, min(n_threads, n // MIN_DOTS_PER_CHUNK))
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in pairwise(edges)]
+
+
+def _spread(run: Callable[[tuple[int, int]], object], bounds: list[tuple[int, int]]) -> list | None:
+    """[run(b) for b in bounds], the first on the calling thread and the others on the helpers; None
+    (nothing run) when another caller's work is on the helpers (or this is a helper thread)."""
+    if not _spreading.acquire(blocking=False):
+        return None
+    try:
+        futures = [_pool(len(bounds) - 1).submit(run, b) for b in bounds[1:]]
+        return [run(bounds[0])] + [f.result() for f in futures]
+    finally:
+        _spreading.release()
+
+
+def over_dots(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **shared) -> tuple:
+    """``fn(*per_dot, **shared)`` with the per-dot arrays (first axis: the n dots; None passes
+    through) cut into chunks run on :func:`threads` threads; fn returns a tuple of arrays whose
+    first axis is the chunk's dots, and the chunks' tuples are joined along it."""
+    bounds = chunk_bounds(n, threads())
+
+    def run(lo_hi: tuple[int, int]) -> tuple:
+        lo, hi = lo_hi
+        return fn(*(None if a is None else a[lo:hi] for a in per_dot), **shared)
+
+    parts = _spread(run, bounds) if len(bounds) > 1 else None
+    if parts is None:
+        return fn(*per_dot, **shared)
+    return tuple(np.concatenate(arrays, axis=0) for arrays in zip(*parts, strict=True))
+
+
+def resize_area(image: np.ndarray, factor: int) -> np.ndarray:
+    """``cv2.resize(image, (W // factor, H // factor), interpolation=cv2.INTER_AREA)`` of an (H, W)
+    image. When factor divides H and W, each output row is the mean of its own ``factor`` input
+    rows (OpenCV's integer-scale path), so blocks of rows are resized on :func:`threads` threads
+    and give the same bits."""
+    h, w = image.shape[:2]
+    size = (w // factor, h // factor)
+    bounds = chunk_bounds(size[1], threads() if h % factor == 0 and w % factor == 0 else 1)
+    out = np.empty((size[1], size[0], *image.shape[2:]), image.dtype)
+
+    def run(lo_hi: tuple[int, int]) -> None:
+        lo, hi = lo_hi
+        out[lo:hi] = cv2.resize(image[lo * factor : hi * factor], (size[0], hi - lo), interpolation=cv2.INTER_AREA)
+
+    if len(bounds) == 1 or _spread(run, bounds) is None:
+        return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    return out

@@ -1,0 +1,149 @@
+"""The detector's work spread over threads gives the same bits as one thread (tasks/vision/detection/parallel.py)."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from itertools import pairwise
+
+import cv2
+import numpy as np
+import pytest
+
+from tasks.machine.camera_model import CameraModel
+from tasks.machine.plate import DotPlate, facing_camera_pose
+from tasks.simulation.render import ImagingConditions, render_plate_image
+from tasks.vision.detection import framework, parallel, perspective
+from tasks.vision.detection.edges import pixels_where
+
+DIST = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
+PLATE_A = DotPlate(7, 7, 5.0, 2.5, dark_dots=True, margin_mm=5.0, name="a")
+PLATE_B = DotPlate(7, 7, 2.0, 1.0, dark_dots=True, margin_mm=2.0, name="b")
+
+
+def camera(focus_mm: float) -> CameraModel:
+    return CameraModel(3072, 2048, 0.0024, 16.0, 1541.3, 1019.8, DIST, focus_distance_mm=focus_mm, f_number=8.0)
+
+
+# the three regimes of the sub-pixel stage: sharp rims (pixel edge fit), blurry rims (rays on an
+# area-averaged crop), a near plate under lens distortion (local homographies for the bias)
+CASES = {
+    "sharp": (camera(300.0), PLATE_A, facing_camera_pose([3.0, -2.0, 300.0], 0.4, 0.3, spin_deg=-5.0), -5.0),
+    "blurry": (camera(80.0), PLATE_B, facing_camera_pose([1.0, 1.0, 76.0], 20.0, 10.0, spin_deg=-120.0), -120.0),
+    "near": (camera(130.0), PLATE_A, facing_camera_pose([0.0, 0.0, 140.0], 5.0, -4.0, spin_deg=30.0), 30.0),
+}
+
+
+@pytest.fixture
+def restore_threads():
+    yield
+    parallel.set_threads(None)
+
+
+def detection_arrays(det) -> dict[str, np.ndarray]:
+    values = {f.name: getattr(det, f.name) for f in dataclasses.fields(det)}
+    return {name: v for name, v in values.items() if isinstance(v, np.ndarray)}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_detections_are_bit_identical_with_one_two_and_three_threads(case, restore_threads, monkeypatch):
+    cam, plate, T, angle = CASES[case]
+    local = []
+    monkeypatch.setattr(framework, "correct_bias_local",
+                        lambda *a, **k: local.append(1) or perspective.correct_bias_local(*a, **k))
+    img = render_plate_image(cam, plate, T, ImagingConditions(), seed=5)
+    runs = []
+    for n in (1, 2, 3):
+        parallel.set_threads(n)
+        det = framework.detect_rrht(img, plate, expected_rotation_deg=angle)
+        assert det.ok, det.reason
+        runs.append(detection_arrays(det))
+    sigma = np.median(runs[0]["edge_sigma_px"])
+    assert (sigma <= 1.5) if case == "sharp" else (sigma > 1.5)  # the regime the case is meant to cover
+    assert bool(local) == (case == "near")
+    for other in runs[1:]:
+        assert other.keys() == runs[0].keys()
+        for name, value in runs[0].items():
+            assert value.tobytes() == other[name].tobytes(), name
+
+
+def test_over_dots_runs_the_chunks_on_separate_threads_and_joins_them_in_order(restore_threads):
+    seen = set()
+
+    def double(a, b, *, offset):
+        seen.add(threading.get_ident())
+        return a * 2 + offset, b[:, ::-1]
+
+    a, b = np.arange(20.0), np.arange(40).reshape(20, 2)
+    parallel.set_threads(2)
+    got = parallel.over_dots(double, 20, a, b, offset=1.0)
+    assert len(seen) == 2
+    assert np.array_equal(got[0], a * 2 + 1.0) and np.array_equal(got[1], b[:, ::-1])
+    seen.clear()
+    parallel.set_threads(1)
+    parallel.over_dots(double, 20, a, b, offset=1.0)
+    assert len(seen) == 1
+
+
+def test_chunks_cover_every_dot_once_and_small_batches_stay_whole():
+    for n in (0, 1, 7, 8, 49, 50):
+        for k in (1, 2, 3, 4):
+            bounds = parallel.chunk_bounds(n, k)
+            assert bounds[0][0] == 0 and bounds[-1][1] == n
+            assert all(b0 == a1 for (_, a1), (b0, _) in pairwise(bounds))
+            assert len(bounds) == 1 or min(b - a for a, b in bounds) >= parallel.MIN_DOTS_PER_CHUNK
+    assert len(parallel.chunk_bounds(7, 2)) == 1 and len(parallel.chunk_bounds(49, 2)) == 2
+    with pytest.raises(ValueError, match="at least 1"):
+        parallel.set_threads(0)
+
+
+@pytest.mark.parametrize("shape", [(2048, 3072), (1001, 1203), (960, 1280)])
+def test_resize_area_matches_opencv_with_any_thread_count(shape, restore_threads):
+    img = np.random.default_rng(sum(shape)).integers(0, 256, shape).astype(np.uint8)
+    for factor in (2, 3, 4, 5):
+        want = cv2.resize(img, (shape[1] // factor, shape[0] // factor), interpolation=cv2.INTER_AREA)
+        for n in (1, 2, 3):
+            parallel.set_threads(n)
+            got = parallel.resize_area(img, factor)
+            assert got.shape == want.shape and np.array_equal(got, want), (factor, n)
+
+
+def test_pixels_where_is_numpys_nonzero():
+    m = np.random.default_rng(3).random((37, 53)) < 0.2
+    for mask in (m, m.astype(np.uint8) * 255):
+        got, want = pixels_where(mask), np.nonzero(mask)
+        assert all(np.array_equal(g, w) and g.dtype == w.dtype for g, w in zip(got, want, strict=True))
+
+
+def test_by_default_only_the_cpus_no_other_thread_holds_are_used(monkeypatch, restore_threads):
+    parallel.set_threads(None)
+    monkeypatch.setattr(parallel, "available_cpus", lambda: 2)
+    for runnable, want in ((1, 2), (2, 1), (9, 1)):
+        monkeypatch.setattr(parallel, "runnable_threads", lambda r=runnable: r)
+        assert parallel.threads() == want
+    monkeypatch.setattr(parallel, "available_cpus", lambda: 1)
+    monkeypatch.setattr(parallel, "runnable_threads", lambda: 1)
+    assert parallel.threads() == 1
+    parallel.set_threads(3)
+    assert parallel.threads() == 3
+
+
+def test_nested_and_concurrent_callers_run_their_work_whole_without_waiting(restore_threads):
+    parallel.set_threads(2)
+    a = np.arange(40.0)
+
+    def inner(x):  # a chunk that spreads its own work: the helpers are taken, it runs whole
+        return parallel.over_dots(lambda y: (y + 1,), len(x), x)
+
+    assert np.array_equal(parallel.over_dots(inner, 40, a)[0], a + 1)
+    results = {}
+
+    def caller(k):
+        results[k] = parallel.over_dots(lambda y: (y * k,), 40, a)[0]
+
+    workers = [threading.Thread(target=caller, args=(k,)) for k in range(4)]
+    for t in workers:
+        t.start()
+    for t in workers:
+        t.join(timeout=30)
+    assert all(np.array_equal(results[k], a * k) for k in range(4))

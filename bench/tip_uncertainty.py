@@ -50,21 +50,19 @@ from tasks.identification.uncertainty import (
     tool_frame_offset_covariance,
 )
 from tasks.lake.store import read_table
+from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import AXIS_ORDER, CALIBRATION_STAGE
-from tasks.vision.intrinsics_uncertainty import intrinsics_covariances, pose_sensitivities
+from tasks.vision.intrinsics_uncertainty import intrinsics_covariances, intrinsics_vector, pose_sensitivities
 
 CHECKED_INTRINSICS = 7
 """f, cx, cy, k1, k2, p1, p2: the self-calibration holds k3 (tasks.vision.pipeline.FIX_K3)."""
 
 
-def true_intrinsics_error(truth_cameras: dict, camera) -> np.ndarray:
-    """(8,) truth − estimate of (f px, cx, cy, k1, k2, p1, p2, k3), the order of
-    tasks.vision.intrinsics_uncertainty.INTRINSIC_PARAMETERS; truth_cameras: truth.json's entry."""
-    est = np.r_[camera.focal_length_mm / camera.pixel_size_mm, camera.cx_px, camera.cy_px,
-                np.ravel(camera.dist_coeffs)[:5]]
-    tru = np.r_[truth_cameras["focal_length_mm"] / truth_cameras["pixel_size_mm"], truth_cameras["cx_px"],
-                truth_cameras["cy_px"], truth_cameras["distortion"]]
-    return tru - est
+def true_intrinsics_error(truth_camera: dict, camera: CameraModel) -> np.ndarray:
+    """(8,) truth − estimate of θ (tasks.vision.intrinsics_uncertainty.INTRINSIC_PARAMETERS);
+    truth_camera: the camera's entry of truth.json."""
+    true = CameraModel(**{**truth_camera, "distortion": tuple(truth_camera["distortion"])})
+    return intrinsics_vector(true) - intrinsics_vector(camera)
 
 
 def gaussian_ratio_tails(cov: np.ndarray, u: float, draws: int = 200_000, seed: int = 0) -> tuple[float, float]:

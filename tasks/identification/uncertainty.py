@@ -215,6 +215,35 @@ def propagate_uncertainty(machine: Machine, result: CalibrationResult, measureme
         noise_models=[m for (x, m), lab in zip(fits, labels, strict=True) if lab == "noise"])
 
 
+def tool_frame_offset_changes(machine: Machine, model: ErrorModel, models: list[ErrorModel],
+                              commands: np.ndarray, R_tool: np.ndarray) -> np.ndarray:
+    """(K, 3) µm: for each of ``models``, the constant tool-frame part of how far it moves the tip
+    from where ``model`` puts it at ``commands`` (N, 5): the mean over the poses of the change of the
+    tip position expressed in the tool frame (R_tool (N, 3, 3): tool frame -> workpiece frame)."""
+    ref = forward(machine, commands, model).tool_in_workpiece()[:, :3, 3]
+    out = np.zeros((len(models), 3))
+    for k, m in enumerate(models):
+        d = (forward(machine, commands, m).tool_in_workpiece()[:, :3, 3] - ref) / UM
+        out[k] = np.einsum("nji,nj->ni", R_tool, d).mean(axis=0)
+    return out
+
+
+def tool_frame_offset_covariance(machine: Machine, model: ErrorModel, prop: PropagatedUncertainty,
+                                 commands: np.ndarray, R_tool: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance (µm²) of the constant tool-frame part of the modelled tip position at
+    ``commands`` (N, 5) (:func:`tool_frame_offset_changes`), over the camera directions (summed
+    outer products) and the noise draws (their sample covariance). What compensation leaves of the
+    model's uncertainty is almost all this one vector (the intrinsics reach the tip as a constant
+    offset), so the true constant tool-frame error after compensation, c, is to be read against
+    it: cᵀ Σ⁻¹ c is χ² with 3 degrees of freedom if the stated uncertainty is right."""
+    camera = tool_frame_offset_changes(machine, model, prop.camera_models, commands, R_tool)
+    cov = camera.T @ camera
+    if len(prop.noise_models) >= 2:
+        noise = tool_frame_offset_changes(machine, model, prop.noise_models, commands, R_tool)
+        cov += np.cov(noise.T, ddof=1)
+    return cov
+
+
 def expected_tip_errors(machine: Machine, model: ErrorModel, prop: PropagatedUncertainty,
                         commands: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Expected tip error norms (µm, arcsec, arcsec) (N,) ×3 at ``commands`` (N, 5) from the

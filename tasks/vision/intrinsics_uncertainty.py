@@ -42,6 +42,12 @@ from tasks.vision.poses import estimate_pose, pose_jacobian
 INTRINSIC_PARAMETERS = ("f_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")
 
 
+def intrinsics_vector(camera: CameraModel) -> np.ndarray:
+    """(8,) θ of ``camera`` in the order of INTRINSIC_PARAMETERS (f, cx, cy in px)."""
+    return np.r_[camera.focal_length_mm / camera.pixel_size_mm, camera.cx_px, camera.cy_px,
+                 np.ravel(camera.dist_coeffs)[:5]]
+
+
 def intrinsics_jacobian(object_points_mm: np.ndarray, T_cam_plate: np.ndarray, camera: CameraModel) -> np.ndarray:
     """∂(u, v)/∂θ (2K, 8), rows interleaving u_k, v_k, of the projections of the plate points
     (K, 3) at pose T_cam_plate; θ in the order of INTRINSIC_PARAMETERS (fx = fy = f)."""

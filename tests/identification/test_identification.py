@@ -439,3 +439,42 @@ def test_the_joint_step_takes_a_profile_the_sweep_measures_through_a_lever_arm_f
     assert 0.5 < fit.sigma2 < 2.0
     z = (fit.x - result.truth_pige.fit.x) / fit.uncertainty
     assert fit.identifiable.all() and np.abs(z).max() < 3.0, z.round(2)
+
+
+def test_the_tool_frame_offset_covariance_predicts_the_tip_offset_a_camera_error_leaves(machine, errors):
+    """Against the simulator's truth: exact poses, then every camera-1 pose moved by a focal-length
+    error of 2σ (200 ppm against a stated 100 ppm). The stated covariance of the constant tool-frame
+    tip offset (camera part of the propagation, rank one here) predicts the offset the moved
+    calibration leaves after compensation against the truth: its direction, its size (2σ) and
+    cᵀΣ⁺c ≈ 4, the χ² the bench/tip_uncertainty.py check reads over seeds."""
+    from tasks.identification.uncertainty import (
+        expected_tip_errors,
+        propagate_uncertainty,
+        tool_frame_offset_covariance,
+    )
+
+    plan, _ = plan_campaign(machine, SMALL, 7)
+    clean = synthetic_measurements(machine, errors, _measurements(machine, plan))
+    result = calibrate(machine, clean, errors)
+    S = _focal_like_sensitivity(clean, "camera1")
+    cov = np.zeros((8, 8))
+    cov[0, 0] = 100e-6**2
+    prop = propagate_uncertainty(machine, result, clean, S, {"camera1": cov}, draws=0)
+    commands = clean.stage("validation").commands
+    R = desired_tip_poses(machine, commands)[:, :3, :3]
+    sigma = tool_frame_offset_covariance(machine, result.model, prop, commands, R)
+
+    moved = Measurements(clean.table, clean.T @ se3.exp(S[:, :, 0] * 200e-6), clean.cov, clean.context)
+    model = calibrate(machine, moved).model
+    d = (forward(machine, commands, errors).tool_in_workpiece()[:, :3, 3]
+         - forward(machine, commands, model).tool_in_workpiece()[:, :3, 3]) / 1e-3  # µm
+    offset = np.einsum("nji,nj->ni", R, d).mean(axis=0)
+
+    w, V = np.linalg.eigh(sigma)
+    assert w[-1] > 1e3 * w[-2] and np.sqrt(w[-1]) > 5.0  # one direction, microns per 100 ppm
+    assert abs(offset @ V[:, -1]) / np.linalg.norm(offset) > 0.999
+    assert np.linalg.norm(offset) == pytest.approx(2 * np.sqrt(w[-1]), rel=0.02)  # measured: 60.00 against 59.98 µm
+    assert offset @ np.linalg.pinv(sigma) @ offset == pytest.approx(4.0, rel=0.04)
+    # the per-pose model uncertainty is this vector's size where the offset is all there is
+    u = expected_tip_errors(machine, result.model, prop, commands)[0]
+    assert u.mean() == pytest.approx(np.sqrt(np.trace(sigma)), rel=0.01)

@@ -34,10 +34,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+from scipy.optimize import brentq, minimize_scalar
 
 MIN_POINTS = 5
 """Fewer points are returned unsmoothed (scipy needs at least 5)."""
+
+MIN_DEGREES_OF_FREEDOM = 3.0
+"""Where GCV still falls at scipy's bound λ = n, the search goes on up to the λ that leaves this many
+effective degrees of freedom (module docstring)."""
 
 
 def penalty_matrix(x: np.ndarray) -> np.ndarray:
@@ -90,7 +94,23 @@ class SplineBasis:
         est = minimize_scalar(gcv, bounds=(0, n), method="bounded")
         if not est.success:
             raise ValueError(f"no minimum of the GCV function: {est.message}")
-        return float(est.x)
+        lam_max = self.roughness_at(MIN_DEGREES_OF_FREEDOM)
+        if lam_max <= n:
+            return float(est.x)
+        # λ = n leaves more than MIN_DEGREES_OF_FREEDOM: the smoother fits beyond it are searched too
+        more = minimize_scalar(lambda t: gcv(np.exp(t)), bounds=(np.log(n), np.log(lam_max)), method="bounded")
+        return float(np.exp(more.x)) if more.success and gcv(np.exp(more.x)) < gcv(est.x) else float(est.x)
+
+    def degrees_of_freedom(self, lam: float) -> float:
+        """tr H(λ): the effective degrees of freedom of the fit at roughness ``lam``."""
+        return float(np.sum(1.0 / (1.0 + lam * self.d)))
+
+    def roughness_at(self, dof: float) -> float:
+        """The λ at which tr H(λ) = ``dof`` (> 2, the straight line's)."""
+        lo, hi = 0.0, 1.0
+        while self.degrees_of_freedom(hi) > dof:
+            lo, hi = hi, hi * 10.0
+        return float(brentq(lambda lam: self.degrees_of_freedom(lam) - dof, lo, hi))
 
 
 def smooth(x: np.ndarray, Y: np.ndarray, w: np.ndarray, lam: np.ndarray | None = None

@@ -35,13 +35,17 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
+from scipy.stats import chi2
 
 MIN_POINTS = 5
 """Fewer points are returned unsmoothed (scipy needs at least 5)."""
 
 MIN_DEGREES_OF_FREEDOM = 3.0
-"""Where GCV still falls at scipy's bound λ = n, the search goes on up to the λ that leaves this many
-effective degrees of freedom (module docstring)."""
+"""Where scipy's bound λ = n leaves more effective degrees of freedom than this, the smoother's
+search goes on up to the λ that leaves this many (module docstring)."""
+
+DISCREPANCY_GRID = 60
+"""Roughnesses tried, log-spaced from the smoothest down to GCV's, by :meth:`SplineBasis.roughness`."""
 
 
 def penalty_matrix(x: np.ndarray) -> np.ndarray:
@@ -101,6 +105,24 @@ class SplineBasis:
         more = minimize_scalar(lambda t: gcv(np.exp(t)), bounds=(np.log(n), np.log(lam_max)), method="bounded")
         return float(np.exp(more.x)) if more.success and gcv(np.exp(more.x)) < gcv(est.x) else float(est.x)
 
+    def roughness(self, y: np.ndarray, noise_var: float | None = None) -> float:
+        """The λ of the values y (n,): GCV's (:meth:`gcv_roughness`), then, where scipy's bound λ = n
+        leaves more than MIN_DEGREES_OF_FREEDOM and the repeats give the noise (``noise_var``: the
+        variance of a point of unit weight), the smoothest fit between GCV's and that bound whose
+        residuals the noise explains: Σ wᵢ rᵢ² / noise_var within the 95 % point of χ² with
+        n − tr H(λ) degrees of freedom (module docstring)."""
+        lam = self.gcv_roughness(y)
+        lam_max = self.roughness_at(MIN_DEGREES_OF_FREEDOM)
+        if noise_var is None or not noise_var > 0 or lam_max <= self.d.size or lam >= lam_max:
+            return lam
+        z = self.U.T @ (self.sw * y)
+        n = self.d.size
+        for candidate in np.exp(np.linspace(np.log(lam_max), np.log(lam), DISCREPANCY_GRID)):
+            shrink = candidate * self.d / (1.0 + candidate * self.d)
+            if np.sum((shrink * z) ** 2) / noise_var <= chi2.ppf(0.95, n - self.degrees_of_freedom(candidate)):
+                return float(max(candidate, lam))
+        return lam
+
     def degrees_of_freedom(self, lam: float) -> float:
         """tr H(λ): the effective degrees of freedom of the fit at roughness ``lam``."""
         return float(np.sum(1.0 / (1.0 + lam * self.d)))
@@ -113,18 +135,22 @@ class SplineBasis:
         return float(brentq(lambda lam: self.degrees_of_freedom(lam) - dof, lo, hi))
 
 
-def smooth(x: np.ndarray, Y: np.ndarray, w: np.ndarray, lam: np.ndarray | None = None
-           ) -> tuple[np.ndarray, np.ndarray]:
+def smooth(x: np.ndarray, Y: np.ndarray, w: np.ndarray, lam: np.ndarray | None = None,
+           noise_var: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Smoothing spline of each column of Y (n, m) through x (n,), evaluated at x.
 
     w: (n,) weights (only their ratios matter; they are normalised to mean 1, which keeps the
-    λ search well conditioned). lam: (m,) roughness per column; None chooses it by GCV.
+    λ search well conditioned). lam: (m,) roughness per column; None chooses it
+    (:meth:`SplineBasis.roughness`). noise_var: (m,) the variance of a point of weight mean(w) per
+    column, from repeats (None: GCV alone).
     Returns (fitted (n, m), λ (m,)); with fewer than MIN_POINTS points, (Y, NaN)."""
     x, Y = np.asarray(x, float), np.asarray(Y, float)
     if x.size < MIN_POINTS:
         return Y.copy(), np.full(Y.shape[1], np.nan)
     basis = SplineBasis.of(x, np.asarray(w, float) / np.mean(w))
     if lam is None:
-        lam = np.array([basis.gcv_roughness(Y[:, k]) for k in range(Y.shape[1])])
+        noise = np.full(Y.shape[1], np.nan) if noise_var is None else np.asarray(noise_var, float)
+        lam = np.array([basis.roughness(Y[:, k], None if np.isnan(noise[k]) else float(noise[k]))
+                        for k in range(Y.shape[1])])
     fitted = np.column_stack([basis.hat(float(lam[k])) @ Y[:, k] for k in range(Y.shape[1])])
     return fitted, lam

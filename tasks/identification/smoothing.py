@@ -24,7 +24,18 @@ tolerance of the λ search (tests/identification/test_identification.py compares
 
 The bound (0, n) is in the units of x (mm, or rad for a rotary axis), so it caps the smoothing
 differently per axis (a 50-position sweep keeps at least 7.6 effective degrees of freedom at
-1 mm steps, 3.0 at 0.2 mm, 2.4 at 7.2° and 2.0 at 1°).
+1 mm steps, 3.0 at 0.2 mm, 2.4 at 7.2° and 2.0 at 1°). Where it leaves more than
+MIN_DEGREES_OF_FREEDOM (3: the X and Y sweeps) the choice goes on beyond it
+(:meth:`SplineBasis.roughness`): GCV is searched from n to the λ that leaves 3 and the lower of the
+two minima kept; then, when the sweep's repeats give the noise of a position's mean, the
+smoothest fit between GCV's and that bound whose weighted residual sum of squares the noise
+explains (below the 95 % point of χ² with n − tr H degrees of freedom; the discrepancy principle).
+On white noise GCV's curve is flat enough there to pick 10–15 degrees of freedom by chance; on the
+10-seed demo-size panel that left X's εx 3.4–4.2″ off the truth on two seeds, where the repeats'
+scatter (independent between repeats on X and Y: the per-position means scatter as the repeats
+over √n do) shows that 3 explain the data (1.3–1.8″ then; ``python bench/seed_panel.py --mode
+profiles``). The Z, A and C sweeps are untouched: their bound leaves 3 or fewer, and Z's
+detector error, smooth along Z and shared by the repeats, is not white (docs/history.md).
 Why GCV rather than REML or a GCV that charges each degree of freedom more: docs/history.md
 (2026-11-22, "The PDGE smoothers' roughness" and "Seed 11's σ² of 19").
 """

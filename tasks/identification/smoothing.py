@@ -25,17 +25,17 @@ tolerance of the λ search (tests/identification/test_identification.py compares
 The bound (0, n) is in the units of x (mm, or rad for a rotary axis), so it caps the smoothing
 differently per axis (a 50-position sweep keeps at least 7.6 effective degrees of freedom at
 1 mm steps, 3.0 at 0.2 mm, 2.4 at 7.2° and 2.0 at 1°). Where it leaves more than
-MIN_DEGREES_OF_FREEDOM (3: the X and Y sweeps) the choice goes on beyond it
-(:meth:`SplineBasis.roughness`): GCV is searched from n to the λ that leaves 3 and the lower of the
-two minima kept; then, when the sweep's repeats give the noise of a position's mean, the
-smoothest fit between GCV's and that bound whose weighted residual sum of squares the noise
-explains (below the 95 % point of χ² with n − tr H degrees of freedom; the discrepancy principle).
-On white noise GCV's curve is flat enough there to pick 10–15 degrees of freedom by chance; on the
+MIN_DEGREES_OF_FREEDOM (3: the X and Y sweeps) and the sweep's repeats give the noise of a
+position's mean, the choice goes on beyond GCV's (:meth:`SplineBasis.roughness`): the smoothest
+fit, down to 3 degrees of freedom, whose weighted residual sum of squares that noise explains
+(below the 95 % point of χ² with n − tr H degrees of freedom: the discrepancy principle). On
+white noise GCV's curve is flat enough there to pick 10–15 degrees of freedom by chance; on the
 10-seed demo-size panel that left X's εx 3.4–4.2″ off the truth on two seeds, where the repeats'
 scatter (independent between repeats on X and Y: the per-position means scatter as the repeats
-over √n do) shows that 3 explain the data (1.3–1.8″ then; ``python bench/seed_panel.py --mode
-profiles``). The Z, A and C sweeps are untouched: their bound leaves 3 or fewer, and Z's
-detector error, smooth along Z and shared by the repeats, is not white (docs/history.md).
+over √n do) shows that 3 explain the data (``python bench/seed_panel.py --mode profiles``). The
+Z, A and C sweeps keep GCV's choice: their bound leaves 3 or fewer, and Z's detector error, smooth
+along Z and shared by the repeats, is not white (docs/history.md). A sweep without repeats keeps
+GCV's choice too.
 Why GCV rather than REML or a GCV that charges each degree of freedom more: docs/history.md
 (2026-11-22, "The PDGE smoothers' roughness" and "Seed 11's σ² of 19").
 """
@@ -52,8 +52,8 @@ MIN_POINTS = 5
 """Fewer points are returned unsmoothed (scipy needs at least 5)."""
 
 MIN_DEGREES_OF_FREEDOM = 3.0
-"""Where scipy's bound λ = n leaves more effective degrees of freedom than this, the smoother's
-search goes on up to the λ that leaves this many (module docstring)."""
+"""Where scipy's bound λ = n leaves more effective degrees of freedom than this and the sweep has
+repeats, the smoother's choice may go on up to the λ that leaves this many (module docstring)."""
 
 DISCREPANCY_GRID = 60
 """Roughnesses tried, log-spaced from the smoothest down to GCV's, by :meth:`SplineBasis.roughness`."""
@@ -109,19 +109,14 @@ class SplineBasis:
         est = minimize_scalar(gcv, bounds=(0, n), method="bounded")
         if not est.success:
             raise ValueError(f"no minimum of the GCV function: {est.message}")
-        lam_max = self.roughness_at(MIN_DEGREES_OF_FREEDOM)
-        if lam_max <= n:
-            return float(est.x)
-        # λ = n leaves more than MIN_DEGREES_OF_FREEDOM: the smoother fits beyond it are searched too
-        more = minimize_scalar(lambda t: gcv(np.exp(t)), bounds=(np.log(n), np.log(lam_max)), method="bounded")
-        return float(np.exp(more.x)) if more.success and gcv(np.exp(more.x)) < gcv(est.x) else float(est.x)
+        return float(est.x)
 
     def roughness(self, y: np.ndarray, noise_var: float | None = None) -> float:
-        """The λ of the values y (n,): GCV's (:meth:`gcv_roughness`), then, where scipy's bound λ = n
+        """The λ of the values y (n,): GCV's (:meth:`gcv_roughness`), except where scipy's bound λ = n
         leaves more than MIN_DEGREES_OF_FREEDOM and the repeats give the noise (``noise_var``: the
-        variance of a point of unit weight), the smoothest fit between GCV's and that bound whose
-        residuals the noise explains: Σ wᵢ rᵢ² / noise_var within the 95 % point of χ² with
-        n − tr H(λ) degrees of freedom (module docstring)."""
+        variance of a point of unit weight): there the smoothest fit between GCV's and the λ that
+        leaves MIN_DEGREES_OF_FREEDOM whose residuals the noise explains, Σ wᵢ rᵢ² / noise_var
+        within the 95 % point of χ² with n − tr H(λ) degrees of freedom (module docstring)."""
         lam = self.gcv_roughness(y)
         lam_max = self.roughness_at(MIN_DEGREES_OF_FREEDOM)
         if noise_var is None or not noise_var > 0 or lam_max <= self.d.size or lam >= lam_max:

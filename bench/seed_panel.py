@@ -11,6 +11,15 @@ them and ``--results``/``--reports`` to folders of your own.
 
     python bench/seed_panel.py --seeds 10 67 161 --campaigns /work/panel/small --results R --reports P
 
+``profiles``: the PDGE columns alone, from the campaigns' measured poses: each seed is simulated
+and measured (``fivecal measure``) if its results root has no ``poses`` table for it yet, then the
+calibration is run in-process on the lake's poses (the ``identify`` step of ``fivecal calibrate``,
+the same function on the same poses, without the uncertainty propagation, verification and report
+that follow it): one row per seed with every component's RMS(fit − truth) of the X and Y profiles
+beside the per-axis worst.
+
+    python bench/seed_panel.py --mode profiles --seeds 497 639 --campaigns C --results R
+
 ``poses``: no images. The tests' small plan (50-position sweeps, 150 five-axis and 30 validation
 poses) with the prototype's frozen errors as truth; ``--draws`` noise draws of the pose covariance
 (tests/identification/test_identification.py's) are calibrated and the scatter of every parameter set beside the
@@ -168,6 +177,40 @@ def run_images(args) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def run_profiles(args) -> pd.DataFrame:
+    """profiles mode (module docstring): one row per seed of PDGE errors against the truth."""
+    import json
+
+    from flows.calibrate import read_measured_campaign
+
+    root = Path(args.results)
+    root.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for seed in args.seeds:
+        campaign = Path(args.campaigns) / f"s{seed}"
+        log = root / f"s{seed}.log"
+        if not (campaign / "campaign.json").exists():
+            _fivecal("simulate", str(campaign), "--seed", str(seed), "--size", args.size, log=log)
+        if not _has("poses", root, json.loads((campaign / "campaign.json").read_text())["campaign_id"]):
+            _fivecal("measure", str(campaign), "--results", str(root), log=log)
+        measured = read_measured_campaign(campaign, str(root))
+        t0 = time.perf_counter()
+        result = calibrate(measured.machine, measured.measurements, measured.truth)
+        row = {"seed": seed, "campaign": campaign.name, "sigma2": result.pige.fit.sigma2,
+               "seconds": time.perf_counter() - t0}
+        for axis, (um, arcsec) in pdge_errors(result.pdge.table).items():
+            row[f"pdge_{axis}_um"], row[f"pdge_{axis}_arcsec"] = um, arcsec
+        table = result.pdge.table
+        for axis in ("X", "Y"):
+            g = table[table.axis == axis]
+            for c in COMPONENT_COLUMNS[3:]:
+                row[f"{axis}_{c.split('_')[0]}"] = float(np.sqrt(np.nanmean((g[f"fit_{c}"] - g[f"truth_{c}"]) ** 2)))
+        rows.append(row)
+        print(f"s{seed}: " + ", ".join(f"{k} {v:.2f}" for k, v in row.items() if k not in ("seed", "campaign")),
+              file=sys.stderr, flush=True)
+    return pd.DataFrame(rows)
+
+
 # ---------------------------------------------------------------------------------------------
 # poses mode
 # ---------------------------------------------------------------------------------------------
@@ -226,13 +269,14 @@ def _print_panel(table: pd.DataFrame) -> None:
     summary["seed"] = np.nan
     print(table.drop(columns=["campaign"]).to_string(index=False, formatters=fmt))
     print(summary.drop(columns=["seed"]).to_string(formatters=fmt))
-    pooled = table[["z_rms"]].pow(2).mean().pow(0.5).iloc[0]
-    print(f"pooled RMS |est − truth|/u over seeds (PIGEs): {pooled:.2f}")
+    if "z_rms" in table:
+        pooled = table[["z_rms"]].pow(2).mean().pow(0.5).iloc[0]
+        print(f"pooled RMS |est − truth|/u over seeds (PIGEs): {pooled:.2f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--mode", choices=("images", "poses"), default="images")
+    ap.add_argument("--mode", choices=("images", "profiles", "poses"), default="images")
     ap.add_argument("--seeds", type=int, nargs="+", default=[10, 67, 161, 262, 497, 519, 619, 639, 848, 957])
     ap.add_argument("--size", default="small")
     ap.add_argument("--campaigns", default="data/campaigns/panel", help="folder of the s<seed> campaigns")
@@ -246,8 +290,8 @@ def main() -> None:
     ap.add_argument("--csv", help="also write the table(s) here (poses mode: <csv> and <csv>.draws.csv)")
     args = ap.parse_args()
     pd.set_option("display.width", 250)
-    if args.mode == "images":
-        table = run_images(args)
+    if args.mode in ("images", "profiles"):
+        table = run_images(args) if args.mode == "images" else run_profiles(args)
         _print_panel(table)
         if args.csv:
             table.to_csv(args.csv, index=False)

@@ -188,7 +188,7 @@ def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis:
     std = np.sqrt(pooled[None, :] / count[:, None])
     # one weight per position (the repeats' count): the pooled variance of a component scales all
     # its weights alike, and the smoother is invariant to that
-    fitted, lam = smooth(q, values, count, lam)
+    fitted, lam = smooth(q, values, count, lam, pooled / count.mean() if dof >= 3 else None)
     raw_profile = TabulatedProfile(q, fitted)
     fit_ref, line = referred_to_home(machine, axis, q, fitted, raw_profile)
     meas_ref, _ = referred_to_home(machine, axis, q, values, raw_profile)

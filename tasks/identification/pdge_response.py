@@ -18,7 +18,7 @@ profile changes by ΔP_j = I_j G_j H_j A_j ΔE_j: this is how much of the effect
 swallows. A cyclic error whose period the sweep's steps resolve but the spline smooths keeps most
 of its signature; a linear or slowly varying one is swallowed whole.
 
-λ_jc is found as the extraction finds it (:meth:`tasks.identification.smoothing.SplineBasis.gcv_roughness`)
+λ_jc is found as the extraction finds it (:meth:`tasks.identification.smoothing.SplineBasis.roughness`)
 on the mean error motions of the extraction's model, so H_jc is the smoother the extraction used
 (tests/analysis/test_diagnosis.py checks the profiles it gives against the extraction's).
 """
@@ -146,8 +146,10 @@ def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis
         w = count / count.mean()  # the extraction's weights count/pooled, normalised: pooled cancels
         mean = average @ E
         basis = SplineBasis.of(q, w)
+        pooled = pooled_variance(E, inverse, k)
+        repeats = pos.size - k >= 3  # the extraction's noise of a position's mean comes from repeats
         for c in range(6):
-            hat[c] = basis.hat(basis.gcv_roughness(mean[:, c]))
+            hat[c] = basis.hat(basis.roughness(mean[:, c], pooled[c] / count.mean() if repeats else None))
     gauge = gauge_operator(machine, axis, q)
     bias = smoothing_bias_covariance(hat, pooled_variance(E, inverse, k), count, gauge)
     return AxisResponse(axis, sweep, q, average, hat, gauge, smoothing_cov=bias, error_motions=E)

@@ -146,11 +146,19 @@ def five_axis_poses(machine: Machine, n: int, plan: CampaignPlan, rng: np.random
     return aim_camera(machine, "camera1", rotary, offsets)
 
 
+FIXTURE_MARGIN = 1.05
+"""A self-calibration view keeps its target's corners this factor inside the field's edges."""
+
+
 def fixture_poses(machine: Machine, camera: str, n: int, rng: np.random.Generator) -> np.ndarray:
     """(n, 4, 4) poses of the camera's self-calibration target in the camera frame (mm).
 
     Tilts up to 35° about a random in-plane axis, any in-plane rotation, distance within ±8 % of
-    focus, lateral position spread over the field of view while keeping the plate inside it.
+    focus, and the target shifted anywhere its image stays inside the field: per view, its four
+    corners' pinhole projection at that tilt and spin bounds the shift along the image's x and y,
+    with a 5 % margin. The views so reach the field's edges and corners, where the machine's
+    images put the plates (an X or Y sweep's ends): there the lens distortion is measured, not
+    extrapolated (docs/camera-calibration.md).
     """
     cam = machine.cameras[camera]
     plate = machine.plates[machine.plate_seen(camera, CALIBRATION_STAGE)]
@@ -161,12 +169,16 @@ def fixture_poses(machine: Machine, camera: str, n: int, rng: np.random.Generato
     axis = np.column_stack([np.cos(tilt_dir), np.sin(tilt_dir), np.zeros(n)])
     # plate faces the camera: rotate 180° about x, then tilt, then spin about the plate normal
     R = se3.exp_so3(axis * tilt[:, None]) @ se3.rot_x(np.full(n, np.pi)) @ se3.rot_z(spin)
-    half_w = cam.width_px * cam.pixel_size_mm / cam.focal_length_mm / 2 * d
-    half_h = cam.height_px * cam.pixel_size_mm / cam.focal_length_mm / 2 * d
-    r = np.hypot(*plate.half_extent_mm)
-    x = rng.uniform(-1, 1, n) * np.maximum(half_w - 1.15 * r, 0)
-    y = rng.uniform(-1, 1, n) * np.maximum(half_h - 1.15 * r, 0)
-    return se3.from_rotation_translation(R, np.column_stack([x, y, d]))
+    hx, hy = plate.half_extent_mm
+    corners = np.array([[sx * hx, sy * hy, 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    offsets = np.einsum("nij,kj->nki", R, corners)  # (n, 4, 3) about the target's centre
+    reach = offsets[..., :2] * (d[:, None] / (d[:, None] + offsets[..., 2]))[..., None] * FIXTURE_MARGIN
+    half = np.array([cam.width_px, cam.height_px]) * cam.pixel_size_mm / cam.focal_length_mm / 2 * d[:, None]
+    up = np.maximum(half - reach.max(axis=1), 0.0)  # how far the centre may move towards +x, +y
+    down = np.maximum(half + reach.min(axis=1), 0.0)  # ... towards -x, -y
+    u = rng.uniform(-1, 1, (n, 2))
+    shift = np.where(u >= 0, u * up, u * down)
+    return se3.from_rotation_translation(R, np.column_stack([shift, d]))
 
 
 def temperature_at(time_s: np.ndarray, start_c: float = 20.0) -> np.ndarray:

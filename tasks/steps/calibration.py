@@ -33,7 +33,7 @@ from tasks.vision.pipeline import content_key
 
 # identification-7 was taken by an uncommitted experiment (GCV_gamma, 2026-11-22) whose results sit
 # in local Prefect caches: never reuse a version an experiment ran under (give experiments a suffix)
-IDENTIFICATION_CODE_VERSION = "identification-20"
+IDENTIFICATION_CODE_VERSION = "identification-23"
 
 
 def _key(prefix: str, *parts) -> str:

@@ -53,7 +53,7 @@ from tasks.identification.measurements import Measurements
 from tasks.identification.pige_identification import IDENTIFICATION_CAMERA, CalibrationResult
 from tasks.machine.description import Machine
 
-DIAGNOSIS_CODE_VERSION = "diagnosis-4"  # bump when diagnose() would return something else for the same inputs
+DIAGNOSIS_CODE_VERSION = "diagnosis-5"  # bump when diagnose() would return something else for the same inputs
 ALPHA = 1e-3
 MIN_GAIN = 0.05  # smallest relative fall of the cross-validated RMS that makes a candidate worth accepting
 MIN_DELTA_BIC = -10.0

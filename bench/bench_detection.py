@@ -18,7 +18,7 @@ both kept, and the calling thread's CPU time (``time.thread_time``: the work tha
 helper threads; on free cores about the wall time when the helpers keep up). ``--threads N`` sets
 OpenCV's threads (``cv2.setNumThreads``: findCirclesGrid's and RRHT's OpenCV calls) and RRHT's own
 (:mod:`tasks.vision.detection.parallel`) to N; by default OpenCV uses the CPUs the process may run
-on, RRHT those of them that are free.
+on, RRHT one (tasks.vision.detection.parallel).
 Prints per-image rows, the summary ratios, and where RRHT's time goes.
 """
 
@@ -86,7 +86,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--hint", action="store_true", help="pass px_per_mm_hint to every detector")
     ap.add_argument("--hough", action="store_true", help="also run the HoughCircles baseline")
-    ap.add_argument("--threads", type=int, default=None, help="OpenCV's and RRHT's threads (default: the CPUs)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="OpenCV's and RRHT's threads (default: OpenCV the CPUs, RRHT one)")
     args = ap.parse_args()
     if args.threads is not None:
         cv2.setNumThreads(args.threads)

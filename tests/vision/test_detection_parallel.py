@@ -115,17 +115,13 @@ def test_pixels_where_is_numpys_nonzero():
         assert all(np.array_equal(g, w) and g.dtype == w.dtype for g, w in zip(got, want, strict=True))
 
 
-def test_by_default_only_the_cpus_no_other_thread_holds_are_used(monkeypatch, restore_threads):
+def test_by_default_the_stages_run_on_the_callers_thread(restore_threads):
     parallel.set_threads(None)
-    monkeypatch.setattr(parallel, "available_cpus", lambda: 2)
-    for runnable, want in ((1, 2), (2, 1), (9, 1)):
-        monkeypatch.setattr(parallel, "runnable_threads", lambda r=runnable: r)
-        assert parallel.threads() == want
-    monkeypatch.setattr(parallel, "available_cpus", lambda: 1)
-    monkeypatch.setattr(parallel, "runnable_threads", lambda: 1)
-    assert parallel.threads() == 1
+    assert parallel.threads() == 1 and parallel.chunk_bounds(49, parallel.threads()) == [(0, 49)]
     parallel.set_threads(3)
     assert parallel.threads() == 3
+    with pytest.raises(ValueError, match="at least 1"):
+        parallel.set_threads(0)
 
 
 def test_nested_and_concurrent_callers_run_their_work_whole_without_waiting(restore_threads):

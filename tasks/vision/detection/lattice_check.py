@@ -52,22 +52,18 @@ def cell_misfits(grid_uv: np.ndarray) -> np.ndarray:
 
 def parallelogram_predictions(grid_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per dot of ``grid_uv`` (h, w, 2) px: the median of its predictions from the other three
-    corners of every cell it belongs to (h, w, 2) px, and the mean side of those cells (h, w) px."""
+    corners of every cell it belongs to (h, w, 2) px, and the median mean side of those cells (h, w) px."""
     h, w, _ = grid_uv.shape
-    preds = [[[] for _ in range(w)] for _ in range(h)]
-    sides = [[[] for _ in range(w)] for _ in range(h)]
-    for i in range(h - 1):
-        for j in range(w - 1):
-            c = {(a, b): grid_uv[i + a, j + b] for a in (0, 1) for b in (0, 1)}
-            side = float(np.mean([np.linalg.norm(c[0, 1] - c[0, 0]), np.linalg.norm(c[1, 1] - c[1, 0]),
-                                  np.linalg.norm(c[1, 0] - c[0, 0]), np.linalg.norm(c[1, 1] - c[0, 1])]))
-            for a in (0, 1):
-                for b in (0, 1):
-                    preds[i + a][j + b].append(c[a, 1 - b] + c[1 - a, b] - c[1 - a, 1 - b])
-                    sides[i + a][j + b].append(side)
-    pred = np.array([[np.median(np.array(preds[i][j]), axis=0) for j in range(w)] for i in range(h)])
-    side = np.array([[float(np.median(sides[i][j])) for j in range(w)] for i in range(h)])
-    return pred, side
+    c = {(a, b): grid_uv[a:h - 1 + a, b:w - 1 + b] for a in (0, 1) for b in (0, 1)}  # the cells' corners
+    side = (((np.linalg.norm(c[0, 1] - c[0, 0], axis=2) + np.linalg.norm(c[1, 1] - c[1, 0], axis=2))
+             + np.linalg.norm(c[1, 0] - c[0, 0], axis=2)) + np.linalg.norm(c[1, 1] - c[0, 1], axis=2)) / 4.0
+    preds = np.full((h, w, 4, 2), np.nan)  # up to four cells per dot, one slot per corner role
+    sides = np.full((h, w, 4), np.nan)
+    for a in (0, 1):
+        for b in (0, 1):
+            preds[a:h - 1 + a, b:w - 1 + b, 2 * a + b] = c[a, 1 - b] + c[1 - a, b] - c[1 - a, 1 - b]
+            sides[a:h - 1 + a, b:w - 1 + b, 2 * a + b] = side
+    return np.nanmedian(preds, axis=2), np.nanmedian(sides, axis=2)
 
 
 def check_window(points: np.ndarray, sizes: np.ndarray | None, window: np.ndarray,

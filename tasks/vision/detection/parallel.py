@@ -8,10 +8,12 @@ result. numpy's array loops and the compiled loops (``nogil``) release the GIL, 
 run on separate cores. :func:`resize_area` does the same for the area-averaged copies of the image
 (the coarse search's downsampling, the pass-2 crops of blurry rims), in blocks of rows.
 
-By default the work is spread over the CPUs that are free at that moment (no other runnable
-thread on them, ``/proc/loadavg``): on a machine busy with other jobs, or with one detection per
-core already (the pipeline's task threads, Dask workers), a helper thread would only wait for a
-core and add switching. One caller at a time spreads its work; others run theirs whole.
+The spreading is off by default (one thread, the caller's) and set by :func:`set_threads`. On the
+2-CPU bench host, idle, two threads gave RRHT no wall time (28.6 ms per full-size image against
+28.2 ms with one) for 30 % more CPU time (``bench/bench_detection.py`` and ``--threads 1``, commit
+5dc2319): per dot the stages are many small array operations, and their Python between them holds
+the GIL. A host with more cores or larger plates may differ: measure with ``--threads N`` there.
+One caller at a time spreads its work; others run theirs whole.
 
 SYNOPSIS
 
@@ -32,47 +34,23 @@ from itertools import pairwise
 import cv2
 import numpy as np
 
-MAX_THREADS = 4
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
 _state: dict = {"threads": None, "pool": None, "pid": None, "workers": 0}
 _spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
 
 
-def available_cpus() -> int:
-    """CPUs this process may run on (its affinity mask, e.g. under ``taskset``)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def runnable_threads() -> int:
-    """Threads of the whole machine that are running or waiting for a CPU now, the caller included
-    (``/proc/loadavg``; 1 where that cannot be read)."""
-    try:
-        with open("/proc/loadavg") as f:
-            return max(1, int(f.read().split()[3].split("/")[0]))
-    except (OSError, ValueError, IndexError):  # pragma: no cover - not Linux
-        return 1
-
-
 def set_threads(n: int | None) -> None:
-    """Use ``n`` threads (1: none besides the caller's) whatever else runs; None: the default, see
-    :func:`threads`."""
+    """Spread the detection stages over ``n`` threads (1: none besides the caller's); None: the
+    default, one."""
     if n is not None and n < 1:
         raise ValueError(f"threads must be at least 1, got {n}")
     _state["threads"] = n
 
 
 def threads() -> int:
-    """Threads to spread work over now: :func:`set_threads`'s number, or by default the CPUs this
-    process may run on (at most :data:`MAX_THREADS`) less those that other runnable threads hold."""
-    n = _state["threads"]
-    if n is not None:
-        return n
-    cpus = min(available_cpus(), MAX_THREADS)
-    return 1 if cpus == 1 else max(1, min(cpus, cpus + 1 - runnable_threads()))
+    """Threads the detection stages are spread over (:func:`set_threads`; default 1)."""
+    return _state["threads"] or 1
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:

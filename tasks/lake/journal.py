@@ -58,7 +58,11 @@ def complete_interrupted(root: Path, staging_root: Path, part_file: str, is_dead
     for journal in sorted(staging_root.glob(f"*{_SUFFIX}")):
         if not is_dead_writer(journal.name[: -len(_SUFFIX)]):
             continue
-        with open(journal, "rb") as handle:
+        try:
+            handle = open(journal, "rb")
+        except FileNotFoundError:  # completed by another process since the glob
+            continue
+        with handle:
             try:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:

@@ -46,6 +46,7 @@ Columns (images mode), over the validation poses after compensation, true = agai
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import time
@@ -131,8 +132,6 @@ def _has(table: str, root: Path, campaign_id: str) -> bool:
 
 def seed_row(machine, campaign: Path, root: Path) -> dict:
     """The panel's columns for one calibrated campaign (its lake under ``root``)."""
-    import json
-
     campaign_id = json.loads((campaign / "campaign.json").read_text())["campaign_id"]
     ver = read_table("verification", root, campaign_id)
     comp = read_table("compensation", root, campaign_id).set_index("image_id")
@@ -156,19 +155,22 @@ def seed_row(machine, campaign: Path, root: Path) -> dict:
     return row
 
 
+def _simulated(args, seed: int, root: Path) -> tuple[Path, str, Path]:
+    """The panel's campaign of ``seed`` (simulated first when absent): (folder, campaign_id, log file)."""
+    campaign = Path(args.campaigns) / f"s{seed}"
+    log = root / f"s{seed}.log"
+    if not (campaign / "campaign.json").exists():
+        _fivecal("simulate", str(campaign), "--seed", str(seed), "--size", args.size, log=log)
+    return campaign, json.loads((campaign / "campaign.json").read_text())["campaign_id"], log
+
+
 def run_images(args) -> pd.DataFrame:
     machine = load_machine("prototype")
     root, reports = Path(args.results), Path(args.reports)
     root.mkdir(parents=True, exist_ok=True)
     rows = []
     for seed in args.seeds:
-        campaign = Path(args.campaigns) / f"s{seed}"
-        log = root / f"s{seed}.log"
-        if not (campaign / "campaign.json").exists():
-            _fivecal("simulate", str(campaign), "--seed", str(seed), "--size", args.size, log=log)
-        import json
-
-        campaign_id = json.loads((campaign / "campaign.json").read_text())["campaign_id"]
+        campaign, campaign_id, log = _simulated(args, seed, root)
         if not _has("verification", root, campaign_id):
             t0 = time.perf_counter()
             _fivecal("calibrate", str(campaign), "--results", str(root), "--reports", str(reports), log=log)
@@ -179,19 +181,14 @@ def run_images(args) -> pd.DataFrame:
 
 def run_profiles(args) -> pd.DataFrame:
     """profiles mode (module docstring): one row per seed of PDGE errors against the truth."""
-    import json
-
     from flows.calibrate import read_measured_campaign
 
     root = Path(args.results)
     root.mkdir(parents=True, exist_ok=True)
     rows = []
     for seed in args.seeds:
-        campaign = Path(args.campaigns) / f"s{seed}"
-        log = root / f"s{seed}.log"
-        if not (campaign / "campaign.json").exists():
-            _fivecal("simulate", str(campaign), "--seed", str(seed), "--size", args.size, log=log)
-        if not _has("poses", root, json.loads((campaign / "campaign.json").read_text())["campaign_id"]):
+        campaign, campaign_id, log = _simulated(args, seed, root)
+        if not _has("poses", root, campaign_id):
             _fivecal("measure", str(campaign), "--results", str(root), log=log)
         measured = read_measured_campaign(campaign, str(root))
         t0 = time.perf_counter()

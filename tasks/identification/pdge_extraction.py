@@ -163,32 +163,52 @@ class PdgeResult:
     smoothing: dict[str, np.ndarray] = field(default_factory=dict)
 
 
+def position_means(e: np.ndarray, where: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(k, 6) the mean of the error motions e (N, 6) at each of a sweep's k positions (``where`` (N,)
+    each image's position, ``count`` (k,) images per position)."""
+    means = np.zeros((count.size, e.shape[1]))
+    np.add.at(means, where, e)
+    return means / count[:, None]
+
+
+def pooled_variance(e: np.ndarray, where: np.ndarray, means: np.ndarray) -> np.ndarray:
+    """(6,) within-position variance of the error motions e (N, 6) over a sweep's repeats
+    (homoscedastic), ``where`` (N,) each image's position and ``means`` (k, 6) the positions' means;
+    with fewer than 3 degrees of freedom of repeats, half the variance of consecutive means."""
+    dof = len(e) - len(means)
+    if dof >= 3:
+        pooled = ((e - means[where]) ** 2).sum(axis=0) / dof
+    else:
+        pooled = np.var(np.diff(means, axis=0), axis=0) / 2 if len(means) > 2 else np.ones(6)
+    return np.maximum(pooled, 1e-18)
+
+
+def repeats_noise(pooled: np.ndarray, count: np.ndarray) -> np.ndarray | None:
+    """The variance of a position's mean at the mean repeat count, per component (6,), for the
+    smoother's discrepancy choice (:func:`tasks.identification.smoothing.smooth`'s ``noise_var``):
+    only where the repeats give it (at least 3 degrees of freedom), else None."""
+    return pooled / count.mean() if count.sum() - count.size >= 3 else None
+
+
 def extract_axis(machine: Machine, model: ErrorModel, sweep: Measurements, axis: str,
                  truth: ErrorModel | None = None, lam: np.ndarray | None = None
                  ) -> tuple[pd.DataFrame, TabulatedProfile, np.ndarray, np.ndarray]:
     """The PDGE rows, smooth referred profile, removed line errors and spline roughness (6,) of one
-    axis from its sweep. lam: the roughness to use (default: chosen by GCV)."""
+    axis from its sweep. lam: the roughness to use (default: chosen by
+    :meth:`tasks.identification.smoothing.SplineBasis.roughness`)."""
     e = measured_error_motions(machine, model, sweep, axis)  # (N, 6) mm, rad
     # the images of a position averaged over its repeats (numpy, not groupby: this runs in every
     # round of the alternation and of each uncertainty re-fit)
     positions_cmd, where, count = np.unique(sweep.table[axis].to_numpy(dtype=float), return_inverse=True,
                                             return_counts=True)
-    values = np.zeros((positions_cmd.size, 6))
-    np.add.at(values, where, e)
-    values /= count[:, None]
+    values = position_means(e, where, count)
     ax = machine.axes[axis]
     q = ax.to_internal(positions_cmd)
-    # pooled within-position variance per component (homoscedastic repeats); 1 repeat: point-to-point scatter
-    dof = max(int(len(e) - positions_cmd.size), 0)
-    if dof >= 3:
-        pooled = ((e - values[where]) ** 2).sum(axis=0) / dof
-    else:
-        pooled = np.var(np.diff(values, axis=0), axis=0) / 2 if positions_cmd.size > 2 else np.ones(6)
-    pooled = np.maximum(pooled, 1e-18)
+    pooled = pooled_variance(e, where, values)
     std = np.sqrt(pooled[None, :] / count[:, None])
     # one weight per position (the repeats' count): the pooled variance of a component scales all
     # its weights alike, and the smoother is invariant to that
-    fitted, lam = smooth(q, values, count, lam, pooled / count.mean() if dof >= 3 else None)
+    fitted, lam = smooth(q, values, count, lam, repeats_noise(pooled, count))
     raw_profile = TabulatedProfile(q, fitted)
     fit_ref, line = referred_to_home(machine, axis, q, fitted, raw_profile)
     meas_ref, _ = referred_to_home(machine, axis, q, values, raw_profile)
@@ -215,7 +235,7 @@ def extract_pdges(machine: Machine, model: ErrorModel, measurements: Measurement
                   truth: ErrorModel | None = None, smoothing: dict[str, np.ndarray] | None = None) -> PdgeResult:
     """PDGEs of every axis that has a sweep (stage ``pdge``, group = axis name).
 
-    smoothing: {axis: (6,) λ} to hold the smoothers of an earlier extraction (default: GCV)."""
+    smoothing: {axis: (6,) λ} to hold the smoothers of an earlier extraction (default: chosen anew)."""
     tables, profiles, lines, lams = [], {}, {}, {}
     sweeps = measurements.stage("pdge")
     for axis in AXIS_ORDER:

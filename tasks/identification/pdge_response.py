@@ -30,7 +30,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from tasks.identification.measurements import Measurements
-from tasks.identification.pdge_extraction import TabulatedProfile, line_error_signatures, measured_error_motions
+from tasks.identification.pdge_extraction import (
+    TabulatedProfile,
+    line_error_signatures,
+    measured_error_motions,
+    pooled_variance,
+    position_means,
+    repeats_noise,
+)
 from tasks.identification.smoothing import MIN_POINTS, SplineBasis
 from tasks.machine.description import AXIS_ORDER, Machine
 from tasks.machine.error_model import COMPONENT_SCALE, ErrorModel
@@ -118,21 +125,10 @@ def smoothing_bias_covariance(hat: np.ndarray, variance: np.ndarray, count: np.n
     return gauge @ B @ gauge.T
 
 
-def pooled_variance(E: np.ndarray, inverse: np.ndarray, k: int) -> np.ndarray:
-    """(6,) within-position variance of the error motions E (N_j, 6) over repeats, as the extraction
-    pools it (1 repeat: half the variance of consecutive differences)."""
-    mean = np.zeros((k, 6))
-    np.add.at(mean, inverse, E)
-    mean /= np.bincount(inverse, minlength=k)[:, None]
-    dof = E.shape[0] - k
-    if dof >= 3:
-        return np.maximum(((E - mean[inverse]) ** 2).sum(axis=0) / dof, 1e-18)
-    return np.maximum(np.var(np.diff(mean, axis=0), axis=0) / 2, 1e-18) if k > 2 else np.ones(6)
-
-
 def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis: str) -> AxisResponse:
-    """The extraction map of ``axis`` for its ``sweep``, with the roughness GCV picks on the error
-    motions that ``model`` (the extraction's model) leaves."""
+    """The extraction map of ``axis`` for its ``sweep``, with the roughness the extraction picks
+    (:meth:`tasks.identification.smoothing.SplineBasis.roughness`) on the error motions that
+    ``model`` (the extraction's model) leaves."""
     E = measured_error_motions(machine, model, sweep, axis)  # (N_j, 6)
     pos = sweep.table[axis].to_numpy(dtype=float)
     positions, inverse, count = np.unique(pos, return_inverse=True, return_counts=True)
@@ -142,16 +138,16 @@ def axis_response(machine: Machine, model: ErrorModel, sweep: Measurements, axis
     average /= count[:, None]
     q = machine.axes[axis].to_internal(positions)
     hat = np.broadcast_to(np.eye(k), (6, k, k)).copy()
+    mean = average @ E
+    pooled = pooled_variance(E, inverse, position_means(E, inverse, count))
     if k >= MIN_POINTS:
         w = count / count.mean()  # the extraction's weights count/pooled, normalised: pooled cancels
-        mean = average @ E
         basis = SplineBasis.of(q, w)
-        pooled = pooled_variance(E, inverse, k)
-        repeats = pos.size - k >= 3  # the extraction's noise of a position's mean comes from repeats
+        noise = repeats_noise(pooled, count)
         for c in range(6):
-            hat[c] = basis.hat(basis.roughness(mean[:, c], pooled[c] / count.mean() if repeats else None))
+            hat[c] = basis.hat(basis.roughness(mean[:, c], None if noise is None else float(noise[c])))
     gauge = gauge_operator(machine, axis, q)
-    bias = smoothing_bias_covariance(hat, pooled_variance(E, inverse, k), count, gauge)
+    bias = smoothing_bias_covariance(hat, pooled, count, gauge)
     return AxisResponse(axis, sweep, q, average, hat, gauge, smoothing_cov=bias, error_motions=E)
 
 

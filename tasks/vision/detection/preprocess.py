@@ -97,8 +97,9 @@ def keep_small_tails(cdf: np.ndarray, lo: float, hi: float) -> tuple[float, floa
     pixels) puts its dots below the 1st percentile: stretched from the paper's noise, the dots
     clip to black and a faint halo around them becomes the strongest edge (circles found twice
     the dots' size). Where the dots make more than 1 % of the image, as on every campaign view,
-    the tails lie within the range and nothing changes. The coarse search uses them only when the
-    usual stretch finds no grid (:func:`tasks.vision.detection.framework.coarse_search`).
+    the tails lie within the range and nothing changes. Where they differ, the coarse search
+    searches the band again with them and keeps the better of the two grids
+    (:func:`tasks.vision.detection.framework.coarse_search`).
     """
     lo_tail = float(np.searchsorted(cdf, TAIL_FRACTION))
     hi_tail = float(np.searchsorted(cdf, 1.0 - TAIL_FRACTION))

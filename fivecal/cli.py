@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Annotated
 
@@ -25,13 +24,6 @@ app = GuardedTyper(add_completion=False, no_args_is_help=True,
                   help="Vision-based calibration of a five-axis precision dispensing machine.")
 
 DEMO_CAMPAIGN = Path("data/campaigns/demo")
-# The temporary Prefect server would try to send telemetry; these machines have no network for it.
-os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-# It starts in 10-20 s on 2 cores, later on a busy machine or with a new database, and Prefect
-# gives up after 20 s ("Timed out while attempting to connect to ephemeral Prefect API server").
-SERVER_STARTUP_TIMEOUT_S = 120
-os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", str(SERVER_STARTUP_TIMEOUT_S))
-
 
 
 def _check_dask(dask_address: str | None, dask_workers: int | None) -> None:

@@ -77,7 +77,7 @@ def prefect_harness(tmp_path_factory) -> Iterator[Path]:
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH, PREFECT_SERVER_ANALYTICS_ENABLED, temporary_settings
     from prefect.testing.utilities import prefect_test_harness
 
-    from fivecal.cli import SERVER_STARTUP_TIMEOUT_S
+    from fivecal.prefect_defaults import SERVER_STARTUP_TIMEOUT_S
 
     storage = tmp_path_factory.mktemp("prefect-storage")
     previous = os.environ.get("PREFECT_LOCAL_STORAGE_PATH")

@@ -46,10 +46,11 @@ def test_after_tip_uncertainty_predicts_what_a_camera_error_leaves_after_the_tip
     """Exact poses, then every camera-1 pose moved by a focal-length error of 2σ (200 ppm against a
     stated 100 ppm), calibrated, compensated, its tip fitted from exact dots on the flow's two
     workpieces and folded in. The propagation is rank one here, so the true error after the tip fit
-    must be twice the stated uncertainty at every pose. Most of it (13 µm along the tool axis,
-    0.4 µm pose by pose) is what the dispensing poses make of the pose-varying error, which a
-    constant fitted over the validation poses themselves would not leave: the pose-varying part
-    alone would state 0.5 µm per σ where 5.5 µm is right, so the cross terms must be right."""
+    must be twice the stated uncertainty at every pose. Almost all of it (10.9 of 11.0 µm) is a
+    constant along the tool axis: what the dispensing poses (seen through sin A, beside the sin A
+    term) make of the model's error, not its constant over the validation poses. The pose-varying
+    part at the validation poses alone would state 0.33 µm per σ where 5.5 µm is right: the cross
+    terms through the fit must be right."""
     plan, _ = plan_campaign(machine, SMALL, 7)
     clean = synthetic_measurements(machine, errors, planned_measurements(plan, COV))
     result = calibrate(machine, clean, errors)

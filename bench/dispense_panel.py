@@ -9,7 +9,8 @@ the latest run), its ``verification`` table (the ``after`` and ``after_tip`` tru
   model uncertainty there (µm);
 - ``true tip``: the mean true tip position error after the tip fit (the ``after_tip`` rows),
   ``const tip`` the norm of its constant tool-frame vector c (tip frame, the split of
-  ``bench/seed_panel.py``), ``rest tip`` the mean of what varies from pose to pose;
+  ``bench/seed_panel.py``), ``rest tip`` the mean norm of what varies from pose to pose and
+  ``rest rms`` its rms, √(mean ‖e‖² − ‖c‖²);
 - ``u tip``: the mean model uncertainty after the tip fit (tasks.dispensing.tip_uncertainty); split
   like the true error, ``u const`` √tr Σ_c (Σ_c the stated covariance of the constant tool-frame
   part) and ``u rest`` √(mean u² − tr Σ_c); and by source (the rms over the poses of each one's
@@ -22,7 +23,8 @@ the latest run), its ``verification`` table (the ``after`` and ``after_tip`` tru
 - the tip offset found, its tool-axis uncertainty, and the dots' measured − true offsets.
 
 Then the median and the worst seed, and the pooled checks: Σ‖e‖² / Σu² over every pose of every
-seed, and Σ m2 against χ² on 3n degrees of freedom.
+seed, Σ m2 against χ² on 3n degrees of freedom, and the same ratio of squares for each part
+(the constant: Σ‖c‖² / Σ tr Σ_c; what varies: Σ rest rms² / Σ u rest²).
 
     .venv/bin/python bench/dispense_panel.py --campaigns C --results R --reports P CAMPAIGN_ID...
 """
@@ -81,6 +83,7 @@ def panel_row(campaign: Path, results: Path, reports: Path) -> tuple[dict, np.nd
            "true after": float(after["position_um"].mean()),
            "u after": float(after["model_uncertainty_position_um"].mean()),
            "true tip": true, "const tip": const, "rest tip": rest, "u tip": float(u.mean()),
+           "rest rms": float(np.sqrt(max(e2.mean() - c @ c, 0.0))),
            "u const": float(np.sqrt(np.trace(cov_c))),
            "u rest": float(np.sqrt(max(np.mean(u**2) - np.trace(cov_c), 0.0))),
            "u cam": parts["camera"], "u noise": parts["noise"], "u fit": parts["tip_fit"],
@@ -117,6 +120,9 @@ def main() -> None:
         print(f"pooled Σ‖e‖²/Σu² over {len(e2)} poses: {e2.sum() / u2.sum():.2f}; "
               f"Σ m2 {df['m2'].sum():.1f} on {3 * n} dof (/3n {df['m2'].sum() / (3 * n):.2f}, "
               f"P(below) {stats.chi2.cdf(df['m2'].sum(), 3 * n):.2f})")
+        rest_u2 = (df["u rest"] ** 2).sum()
+        print(f"which part: Σ‖c‖²/Σ tr Σ_c {(df['const tip'] ** 2).sum() / (df['u const'] ** 2).sum():.2f} "
+              f"(the constant), Σ rest rms²/Σ u rest² {(df['rest rms'] ** 2).sum() / rest_u2:.2f} (what varies)")
         largest = df.loc[df["const tip"].idxmax(), "campaign"]
         print(f"max const after the tip fit {df['const tip'].max():.2f} µm ({largest}), "
               f"max |mean meas−true| {df[['meas−true x', 'meas−true y']].abs().max().max():.2f} µm")

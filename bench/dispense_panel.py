@@ -5,8 +5,9 @@ Reads each campaign's dispensing summary (``<reports>/<campaign_id>/<run>/dispen
 the latest run), its ``verification`` table (the ``after`` and ``after_tip`` truth rows with their
 ``model_uncertainty_position_um``) and its ``dispense_inspection`` table, and prints per seed:
 
-- ``true after``, ``u after``: the mean true tip position error after compensation and the mean
-  model uncertainty there (µm);
+- ``true after``, ``const after``, ``u after``: the mean true tip position error after
+  compensation, the norm of its constant tool-frame vector and the mean model uncertainty there
+  (µm);
 - ``true tip``: the mean true tip position error after the tip fit (the ``after_tip`` rows),
   ``const tip`` the norm of its constant tool-frame vector c (tip frame, the split of
   ``bench/seed_panel.py``), ``rest tip`` the mean norm of what varies from pose to pose and
@@ -81,6 +82,7 @@ def panel_row(campaign: Path, results: Path, reports: Path) -> tuple[dict, np.nd
     ex, ey = good["dx_um"] - good["truth_dx_um"], good["dy_um"] - good["truth_dy_um"]
     row = {"campaign": campaign_id,
            "true after": float(after["position_um"].mean()),
+           "const after": float(np.linalg.norm(t["constant_before_um"])),
            "u after": float(after["model_uncertainty_position_um"].mean()),
            "true tip": true, "const tip": const, "rest tip": rest, "u tip": float(u.mean()),
            "rest rms": float(np.sqrt(max(e2.mean() - c @ c, 0.0))),

@@ -43,21 +43,23 @@ def _focal_like_sensitivity(meas: Measurements, camera: str) -> np.ndarray:
 
 
 def test_after_tip_uncertainty_predicts_what_a_camera_error_leaves_after_the_tip_fit(machine, errors):
-    """Exact poses, then every camera-1 pose moved by a focal-length error of 2σ (200 ppm against a
+    """Exact poses, every camera-1 pose moved by a focal-length error of 2σ (200 ppm against a
     stated 100 ppm), calibrated, compensated, its tip fitted from exact dots on the flow's two
-    workpieces and folded in. The propagation is rank one here, so the true error after the tip fit
-    must be twice the stated uncertainty at every pose. Almost all of it (10.9 of 11.0 µm) is a
+    workpieces and folded in. The propagation (about that calibration) is rank one here, so the true
+    error after the tip fit must be twice the stated uncertainty at every pose. Almost all of it (10.9 of 11.0 µm) is a
     constant along the tool axis: what the dispensing poses (seen through sin A, beside the sin A
     term) make of the model's error, not its constant over the validation poses. The pose-varying
     part at the validation poses alone would state 0.33 µm per σ where 5.5 µm is right: the cross
     terms through the fit must be right."""
     plan, _ = plan_campaign(machine, SMALL, 7)
     clean = synthetic_measurements(machine, errors, planned_measurements(plan, COV))
-    result = calibrate(machine, clean, errors)
     S = _focal_like_sensitivity(clean, "camera1")
-    prop = propagate_uncertainty(machine, result, clean, S, {"camera1": np.array([[100e-6**2]])}, draws=0)
     moved = Measurements(clean.table, clean.T @ se3.exp(S[:, :, 0] * 200e-6), clean.cov, clean.context)
-    model = calibrate(machine, moved).model
+    result = calibrate(machine, moved)
+    model = result.model
+    # propagated about the moved calibration: the truth lies 2σ away along the one direction
+    prop = propagate_uncertainty(machine, result, moved, _focal_like_sensitivity(moved, "camera1"),
+                                 {"camera1": np.array([[100e-6**2]])}, draws=0)
 
     commands, rings = _dispensed(machine, model, clean.stage("pige").commands)
     fit = fit_tip_offset(machine, model, commands, rings, landing_points(machine, errors, commands) - rings)
@@ -65,7 +67,7 @@ def test_after_tip_uncertainty_predicts_what_a_camera_error_leaves_after_the_tip
     after_tip = compensate(machine, fit.model, val).commands
     true = modelled_errors(machine, errors, desired_tip_poses(machine, val), after_tip)["position_um"].to_numpy()
     # the dots are exact: the fit's dot-noise term is the next test's
-    stated = after_tip_uncertainty(machine, result.model, prop, commands, np.zeros((3, 3)), after_tip)
+    stated = after_tip_uncertainty(machine, model, prop, commands, np.zeros((3, 3)), after_tip)
     u = stated.norms()[0]
     assert true.mean() > 5.0  # measured 10.97 µm; after compensation alone 60 µm
     np.testing.assert_allclose(true / u, 2.0, rtol=0.05)  # measured 1.98–2.01

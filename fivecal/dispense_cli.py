@@ -56,6 +56,8 @@ def dispense_test(
             f"{a} {v:+.2f} ± {u:.2f}" for a, v, u in zip("xyz", summary["tip_offset_um"],
                                                          summary["tip_offset_uncertainty_um"], strict=True))
                    + f" from {summary['tip_fit_dots']} dots (residual rms {summary['tip_fit_residual_rms_um']:.2f} µm)")
+        typer.echo("model uncertainty of the tip after the tip fit: "
+                   f"{summary['model_uncertainty_after_tip_um']:.2f} µm (mean over the validation poses)")
     if "truth" in summary:
         t = summary["truth"]
         typer.echo(f"truth: constant tool-frame tip error {_norm(t['constant_before_um']):.2f} µm after compensation, "

@@ -27,17 +27,19 @@ from prefect import flow, get_run_logger
 
 from flows.lake_calibration import calibration_from_lake
 from tasks.analysis.compensation import desired_tip_poses
-from tasks.analysis.verification import modelled_errors, predicted_by, verification_table
+from tasks.analysis.residuals import plates_of
+from tasks.analysis.verification import PHASE_QUANTITIES, modelled_errors, predicted_by, verification_table
 from tasks.core.version import FIVECAL_VERSION
 from tasks.dispensing.capture import CAMERA, plan_rows, write_plan
 from tasks.dispensing.inspection import load_config
 from tasks.dispensing.measure import dispense_rows, load_capture_manifest
 from tasks.dispensing.tip import constant_tool_frame_error, fit_tip_offset
+from tasks.dispensing.tip_uncertainty import AfterTipUncertainty, after_tip_uncertainty
 from tasks.dispensing.workpiece import Workpiece, imaging_commands, ring_layout
 from tasks.lake.store import read_provenance, read_table, write_partition
-from tasks.machine.description import COMMAND_COLUMNS
+from tasks.machine.description import CALIBRATION_STAGE, COMMAND_COLUMNS
 from tasks.report.dispensing_test import write_dispensing_report
-from tasks.steps.calibration import compensate_task
+from tasks.steps.calibration import compensate_task, propagate_task
 from tasks.steps.dispensing import DISPENSE_CODE_VERSION, dispense_capture_task, inspect_task
 from tasks.vision.pipeline import content_key
 
@@ -102,39 +104,65 @@ def plan_first_capture(lake, workpiece: Workpiece, seed: int, orientation: str) 
 
 def fit_tip(rows: pd.DataFrame, machine, model):
     """The tip's constant tool-frame offset from the qualified dots of the nominal and compensated
-    phases (:func:`tasks.dispensing.tip.fit_tip_offset`)."""
+    phases (:func:`tasks.dispensing.tip.fit_tip_offset`): (the fit, the dispensed commands (M, 5) of
+    the dots it used)."""
     on = _fit_rows(rows[rows["phase"].isin(["nominal", "compensated"])])
-    fit = fit_tip_offset(machine, model, on[list(COMMAND_COLUMNS)].to_numpy(float),
+    commands = on[list(COMMAND_COLUMNS)].to_numpy(float)
+    fit = fit_tip_offset(machine, model, commands,
                          on[["ring_x_mm", "ring_y_mm"]].to_numpy(float), on[["dx_um", "dy_um"]].to_numpy(float) * 1e-3)
     get_run_logger().info(
         f"tip offset (tool frame) from {fit.dots} dots: "
         + ", ".join(f"{v:+.2f} ± {u:.2f}" for v, u in zip(fit.offset_um, fit.uncertainty_um, strict=True))
         + f" µm; tool-axis error ∝ sin A {fit.tilt_um:+.2f} ± {fit.tilt_uncertainty_um:.2f} µm; dot residual "
         f"rms {fit.residual_rms_um:.2f} µm")
-    return fit
+    return fit, commands
 
 
-def verification_with_tip(lake, root: Path | None, fit, orientation: str) -> tuple[pd.DataFrame, dict | None]:
+def after_tip_model_uncertainty(lake, root: Path | None, fit, fit_commands: np.ndarray,
+                                after_tip: np.ndarray) -> AfterTipUncertainty:
+    """The model uncertainty of the tip after the tip fit at the validation poses compensated with
+    it, ``after_tip`` (N, 5) (:func:`tasks.dispensing.tip_uncertainty.after_tip_uncertainty`): the
+    propagation of calibrate's uncertainty (its cached task, same inputs), with the constant
+    tool-frame part replaced by what the fit at ``fit_commands`` leaves."""
+    machine = lake.machine
+    images = read_table("images", root, lake.campaign_id)
+    propagated = propagate_task.submit(machine, lake.measurements, lake.result,
+                                       read_table("camera_calibration", root, lake.campaign_id),
+                                       read_table("dots", root, lake.campaign_id), images, lake.cameras,
+                                       plates_of(machine), plates_of(machine, CALIBRATION_STAGE)).result()
+    return after_tip_uncertainty(machine, lake.model, propagated, fit_commands, fit.covariance_um2, after_tip)
+
+
+def verification_with_tip(lake, root: Path | None, fit, fit_commands: np.ndarray,
+                          orientation: str) -> tuple[pd.DataFrame, dict, dict | None]:
     """The campaign's verification table with, for a simulated campaign, the true errors of the
-    held-out poses compensated with the tip folded in (phase ``after_tip``); and the truth's summary
-    of the constant tool-frame error before and after the tip fit (None for a lab's campaign)."""
+    held-out poses compensated with the tip folded in (phase ``after_tip``) and the model
+    uncertainty there (:func:`after_tip_model_uncertainty`); that uncertainty's summary (any
+    campaign: its mean over the poses, its parts and the covariance of its constant tool-frame
+    part, µm); and the truth's summary of the constant tool-frame error before and after the tip
+    fit (None for a lab's campaign)."""
     machine, model, truth = lake.machine, lake.model, lake.truth
     verification = read_table("verification", root, lake.campaign_id)
     verification = verification[verification["phase"] != "after_tip"].drop(columns="campaign_id", errors="ignore")
-    if not lake.simulated:
-        return verification, None
     validation = lake.measurements.stage("validation", camera=CAMERA)
     ids, commands = validation.table.image_id.tolist(), validation.commands
-    desired = desired_tip_poses(machine, commands)
     after_tip = compensate_task.submit(machine, fit.model, commands, orientation).result().commands
+    stated = after_tip_model_uncertainty(lake, root, fit, fit_commands, after_tip)
+    uncertainty = stated.norms()
+    u_summary = {"model_uncertainty_after_tip_um": float(uncertainty[0].mean()),
+                 "model_uncertainty_after_tip_parts_um": stated.position_parts_um(),
+                 "after_tip_constant_covariance_um2": stated.constant_covariance_um2.tolist()}
+    if not lake.simulated:
+        return verification, u_summary, None
+    desired = desired_tip_poses(machine, commands)
     errors = modelled_errors(machine, truth, desired, after_tip)
     predicted = predicted_by(machine, fit.model, desired)(after_tip)
-    errors = errors.assign(model_predicted_position_um=predicted[0], model_predicted_orientation_arcsec=predicted[1],
-                           model_predicted_tool_direction_arcsec=predicted[2])
+    errors = errors.assign(**{f"model_uncertainty_{q}": v for q, v in zip(PHASE_QUANTITIES, uncertainty, strict=True)},
+                           **{f"model_predicted_{q}": v for q, v in zip(PHASE_QUANTITIES, predicted, strict=True)})
     verification = pd.concat([verification, verification_table({("after_tip", "truth"): (ids, errors)})],
                              ignore_index=True)
     compensated = compensate_task.submit(machine, model, commands, orientation).result().commands
-    return verification, {
+    return verification, u_summary, {
         "constant_before_um": constant_tool_frame_error(machine, truth, desired, compensated).tolist(),
         "constant_after_tip_um": constant_tool_frame_error(machine, truth, desired, after_tip).tolist(),
         "position_after_um": float(modelled_errors(machine, truth, desired, compensated)["position_um"].mean()),
@@ -170,7 +198,8 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     summary["captures"]["dispense"] = "requested" if first is None else "measured"
     if first is None:
         return summary
-    fit = fit_tip(_table_rows([first], lake.machine, lake.model, full_camera), lake.machine, lake.model)
+    fit, fit_commands = fit_tip(_table_rows([first], lake.machine, lake.model, full_camera), lake.machine,
+                                lake.model)
 
     # a fresh copy of the compensated phase's workpiece, dispensed with the tip folded in
     check_layout = layouts["compensated"]
@@ -183,7 +212,8 @@ def dispense_test(campaign: str, results_root: str | None = None, reports_root: 
     summary["captures"]["check"] = "requested" if check is None else "measured"
     rows = _table_rows([first] if check is None else [first, check], lake.machine, lake.model, full_camera)
 
-    verification, truth_summary = verification_with_tip(lake, root, fit, orientation)
+    verification, u_summary, truth_summary = verification_with_tip(lake, root, fit, fit_commands, orientation)
+    summary.update(u_summary)
     if truth_summary is not None:
         summary["truth"] = truth_summary
     calib_prov = lake.provenance

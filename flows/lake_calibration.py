@@ -10,6 +10,7 @@ from pathlib import Path
 from tasks.campaign.ingest import load_campaign_metadata
 from tasks.dispensing.measure import full_resolution
 from tasks.identification.measurements import Measurements, assemble_measurements
+from tasks.identification.pige_identification import CalibrationResult
 from tasks.lake.store import read_provenance, read_table
 from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import Machine, load_machine
@@ -26,8 +27,9 @@ from tasks.vision.pipeline import nominal_machine
 class LakeCalibration:
     """campaign_id, the ``pige`` table's provenance (``effects``, ``effect_modules``,
     ``orientation_objective``, ...), the nominal machine, the measurements (mm, rad; camera frames),
-    the calibrated intrinsics per camera, the identified model, and for a simulated campaign its
-    truth.json and true error model (None for a lab's campaign)."""
+    the calibrated intrinsics per camera, the identified model, for a simulated campaign its
+    truth.json and true error model (None for a lab's campaign), and calibrate's whole
+    identification result (what its uncertainty is propagated for)."""
 
     campaign_id: str
     provenance: dict
@@ -37,6 +39,7 @@ class LakeCalibration:
     model: ErrorModel
     truth_doc: dict | None
     truth: ErrorModel | None
+    result: CalibrationResult | None = None
 
     @property
     def simulated(self) -> bool:
@@ -72,5 +75,6 @@ def calibration_from_lake(campaign: Path, root: Path | None, effect_modules: lis
     truth_doc, truth = read_truth(campaign) if is_simulated(campaign) else (None, None)
     base = ErrorModel(effects=recorded_effects(provenance.get("effects", []), provenance.get("effect_modules", []),
                                                effect_modules))
-    model = identify_task.submit(machine, measurements, truth, base).result().model
-    return LakeCalibration(campaign_id, provenance, machine, measurements, cameras, model, truth_doc, truth)
+    result = identify_task.submit(machine, measurements, truth, base).result()
+    return LakeCalibration(campaign_id, provenance, machine, measurements, cameras, result.model, truth_doc, truth,
+                           result)

@@ -79,6 +79,35 @@ class TipFit:
         return np.sqrt(np.diag(self.covariance_um2))
 
 
+def tip_fit_jacobian(machine: Machine, model: ErrorModel, commands: np.ndarray, offset_um=None,
+                     base: np.ndarray | None = None) -> np.ndarray:
+    """(2N, 4) the tip fit's Jacobian at ``commands`` (N, 5): how the landing points (x, y of each
+    dot, workpiece frame) move per unit of the tool-frame offset t (three columns) and of the
+    tool-axis error b sin A (the fourth), mm per mm, for ``model`` with ``offset_um`` (3,) (µm)
+    added to its tool_offset (zeros by default). base: the landing points there, if already known."""
+    t = np.zeros(3) if offset_um is None else np.asarray(offset_um, dtype=float)
+    if base is None:
+        base = landing_points(machine, with_tool_offset(model, t), commands)
+    J = np.empty((2 * len(commands), 4))
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = TIP_FIT_STEP_UM
+        moved = landing_points(machine, with_tool_offset(model, t + step), commands)
+        J[:, k] = ((moved - base) / (TIP_FIT_STEP_UM * UM)).ravel()  # mm per mm
+    # the landing is linear in a per-pose tool-axis offset
+    J[:, 3] = J[:, 2] * np.repeat(np.sin(np.deg2rad(commands[:, 3])), 2)
+    return J
+
+
+def tip_fit_gain(machine: Machine, model: ErrorModel, commands: np.ndarray) -> np.ndarray:
+    """(3, 2N) the tip fit's linear response at ``commands`` (N, 5): the change of the fitted
+    tool-frame offset t (µm) per change of the dots' landing points (x, y of each dot, µm,
+    workpiece frame), with the sin A nuisance term fitted beside it: the first three rows of
+    (JᵀJ)⁻¹Jᵀ (:func:`tip_fit_jacobian`)."""
+    J = tip_fit_jacobian(machine, model, np.asarray(commands, dtype=float))
+    return np.linalg.solve(J.T @ J, J.T)[:3]
+
+
 def fit_tip_offset(machine: Machine, model: ErrorModel, commands: np.ndarray, ring_mm: np.ndarray,
                    offset_mm: np.ndarray, iterations: int = 3) -> TipFit:
     """Fit the constant tool-frame tip offset from dot offsets.
@@ -95,17 +124,10 @@ def fit_tip_offset(machine: Machine, model: ErrorModel, commands: np.ndarray, ri
     if len(commands) < 4:
         raise ValueError(f"the tip fit needs at least 4 qualified dots, got {len(commands)}")
     measured = np.asarray(ring_mm, float) + np.asarray(offset_mm, float)
-    sin_a = np.repeat(np.sin(np.deg2rad(commands[:, 3])), 2)
     t, b = np.zeros(3), 0.0
     for _ in range(iterations):
         base = landing_points(machine, with_tool_offset(model, t), commands)
-        J = np.empty((2 * len(commands), 4))
-        for k in range(3):
-            step = np.zeros(3)
-            step[k] = TIP_FIT_STEP_UM
-            moved = landing_points(machine, with_tool_offset(model, t + step), commands)
-            J[:, k] = ((moved - base) / (TIP_FIT_STEP_UM * UM)).ravel()  # mm per mm
-        J[:, 3] = J[:, 2] * sin_a  # the landing is linear in a per-pose tool-axis offset
+        J = tip_fit_jacobian(machine, model, commands, t, base)
         if np.linalg.cond(J) > MAX_CONDITION:
             raise ValueError("the dots do not fix the tip offset: dispense at more than one A angle")
         r = (measured - base).ravel() / UM - J[:, 3] * b  # µm

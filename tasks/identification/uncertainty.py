@@ -244,28 +244,45 @@ def tool_frame_offset_covariance(machine: Machine, model: ErrorModel, prop: Prop
     return cov
 
 
+def tip_pose_changes(machine: Machine, model: ErrorModel, models: list[ErrorModel],
+                     commands: np.ndarray) -> np.ndarray:
+    """(K, N, 6) how far each of ``models`` moves the modelled tip pose from where ``model`` puts it
+    at ``commands`` (N, 5): position (mm, workpiece frame), then the rotation vector (rad, tip frame,
+    whose z is the tool axis)."""
+    ref = forward(machine, commands, model).tool_in_workpiece()
+    out = np.zeros((len(models), len(commands), 6))
+    for k, m in enumerate(models):
+        T = forward(machine, commands, m).tool_in_workpiece()
+        out[k, :, :3] = T[:, :3, 3] - ref[:, :3, 3]
+        out[k, :, 3:] = se3.log_so3(np.swapaxes(ref[:, :3, :3], 1, 2) @ T[:, :3, :3])
+    return out
+
+
+def change_variance(camera: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """(N, C) the variance a propagation states from the changes its re-fits make, camera (K, N, C)
+    and noise (D, N, C): the camera directions summed, the noise draws' sample variance (none with
+    fewer than 2 draws)."""
+    var = (camera**2).sum(axis=0)
+    if len(noise) >= 2:
+        var = var + np.var(noise, axis=0, ddof=1)
+    return var
+
+
+def tip_error_norms(var: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Expected norms (µm, arcsec, arcsec) (N,) ×3 of position, whole orientation and tool direction
+    (the rotation's tip-frame x and y) from per-component variances (N, 6) of
+    :func:`tip_pose_changes` (mm², rad²)."""
+    return (np.sqrt(var[:, :3].sum(axis=1)) / UM, np.sqrt(var[:, 3:].sum(axis=1)) / ARCSEC,
+            np.sqrt(var[:, 3:5].sum(axis=1)) / ARCSEC)
+
+
 def expected_tip_errors(machine: Machine, model: ErrorModel, prop: PropagatedUncertainty,
                         commands: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Expected tip error norms (µm, arcsec, arcsec) (N,) ×3 at ``commands`` (N, 5) from the
     identified model's uncertainty alone: position, whole orientation and tool direction, the rms
-    change of the modelled tip pose (workpiece frame; rotation in the tip frame, whose z is the
-    tool axis, so the tool direction is its x and y) over the camera directions (summed) and the
-    noise draws (variance). After compensation this is what the tip would miss by if the model were
-    right but for its uncertainty."""
-    def tip(m: ErrorModel) -> np.ndarray:
-        return forward(machine, commands, m).tool_in_workpiece()
-
-    ref = tip(model)
-
-    def change(m: ErrorModel) -> np.ndarray:  # (N, 6) position mm, rotation vector rad
-        T = tip(m)
-        rot = se3.log_so3(np.swapaxes(ref[:, :3, :3], 1, 2) @ T[:, :3, :3])
-        return np.column_stack([T[:, :3, 3] - ref[:, :3, 3], rot])
-
-    var = np.zeros((len(commands), 6))
-    for m in prop.camera_models:
-        var += change(m) ** 2
-    if len(prop.noise_models) >= 2:
-        var += np.var(np.array([change(m) for m in prop.noise_models]), axis=0, ddof=1)
-    return (np.sqrt(var[:, :3].sum(axis=1)) / UM, np.sqrt(var[:, 3:].sum(axis=1)) / ARCSEC,
-            np.sqrt(var[:, 3:5].sum(axis=1)) / ARCSEC)
+    change of the modelled tip pose (:func:`tip_pose_changes`) over the camera directions (summed)
+    and the noise draws (variance). After compensation this is what the tip would miss by if the
+    model were right but for its uncertainty."""
+    var = change_variance(tip_pose_changes(machine, model, prop.camera_models, commands),
+                          tip_pose_changes(machine, model, prop.noise_models, commands))
+    return tip_error_norms(var)

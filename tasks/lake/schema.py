@@ -443,7 +443,8 @@ _TABLES = (
                     "expected tool-direction error from measurement noise alone (vbm rows; NaN for truth)"),
         *_tip_norms("model_uncertainty",
                     "expected tip position error norm at this phase's commands from the identified model's "
-                    "uncertainty alone (NaN when not propagated)",
+                    "uncertainty alone (NaN when not propagated); after_tip: with the constant tool-frame part "
+                    "replaced by what the dispensing test's tip fit leaves (tasks/dispensing/tip_uncertainty.py)",
                     "the same for the orientation", "the same for the tool direction"),
         *_tip_norms("model_predicted",
                     "tip position error norm the identified model predicts at this phase's commands (after a "

@@ -103,9 +103,12 @@ def truth_agreement(rows: pd.DataFrame) -> pd.DataFrame:
 
 
 def before_after_table(verification: pd.DataFrame) -> pd.DataFrame:
-    """Mean tip errors per phase and source, after_tip included."""
+    """Mean tip errors per phase and source, after_tip included, beside the mean model uncertainty
+    of the position at that phase's commands (after_tip: with the tip fit's constant replaced,
+    tasks.dispensing.tip_uncertainty)."""
     order = {"before": 0, "after": 1, "after_tip": 2}
-    g = (verification.groupby(["phase", "source"])[["position_um", "orientation_arcsec", "tool_direction_arcsec"]]
+    columns = ["position_um", "model_uncertainty_position_um", "orientation_arcsec", "tool_direction_arcsec"]
+    g = (verification.reindex(columns=["phase", "source", *columns]).groupby(["phase", "source"])[columns]
          .mean().reset_index())
     return g.sort_values(["phase", "source"], key=lambda s: s.map(order) if s.name == "phase" else s)
 
@@ -129,6 +132,11 @@ def write_dispensing_report(out_dir: Path, rows: pd.DataFrame, verification: pd.
           "| tip axis | offset (µm) | u (µm) |", "|---|---:|---:|", tip, "",
           f"Fitted beside it, not folded in: a tool-axis error growing as sin A, {fit.tilt_um:+.2f} ± "
           f"{fit.tilt_uncertainty_um:.2f} µm per unit sin A (docs/dispensing-test.md).", "",
+          "Model uncertainty of the tip position after the tip fit, mean over the validation poses "
+          "compensated with it: "
+          f"{summary.get('model_uncertainty_after_tip_um', float('nan')):.2f} µm (the calibration's propagated "
+          "uncertainty, its constant tool-frame part replaced by what this fit leaves; "
+          "tasks/dispensing/tip_uncertainty.py).", "",
           "## Dot offsets", "", "![dot offsets](figures/offsets.png)", "",
           "## Pass / defect counts", "", _table(counts_table(rows)), "",
           "## Dot features", "", "![features](figures/features.png)", ""]

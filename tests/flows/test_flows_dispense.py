@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from flows.dispense import dispense_test
 from flows.reproduce import opencv_threads
@@ -60,6 +61,9 @@ def test_dispense_test_writes_its_table_after_tip_rows_and_report(calibrated_cam
     ver = read_table("verification", results, campaign_id)
     tip = ver[ver["phase"] == "after_tip"]
     assert set(tip["source"]) == {"truth"} and len(tip) == len(ver[(ver.phase == "after") & (ver.source == "truth")])
+    # the model uncertainty after the tip fit, beside the truth, and its mean in the summary
+    assert (tip["model_uncertainty_position_um"] > 0).all()
+    assert summary["model_uncertainty_after_tip_um"] == pytest.approx(tip["model_uncertainty_position_um"].mean())
     assert len(summary["tip_offset_um"]) == 3 and all(u > 0 for u in summary["tip_offset_uncertainty_um"])
     assert (tmp_path / "reports" / campaign_id / "t" / "dispensing" / "index.html").is_file()
     calibration = read_provenance("dispense_inspection", campaign_id, results)["calibration"]

@@ -33,7 +33,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit
 
 from tasks.vision.detection.conics import (
     ellipse_params,
@@ -47,6 +46,7 @@ from tasks.vision.detection.conics import (
 from tasks.vision.detection.edge_fit import fit_dot_edges
 from tasks.vision.detection.parallel import over_dots, resize_area
 from tasks.vision.detection.stats import masked_median
+from tasks.vision.detection.step_kernels import fitted_columns, gauss_newton_step, step_arguments
 
 INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
 
@@ -199,99 +199,6 @@ def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: 
     return tp, peak, fwhm
 
 
-def _phi(z: np.ndarray) -> np.ndarray:
-    """Standard normal CDF, tanh approximation (|error| < 2e-4, odd about 0: no location bias)."""
-    return 0.5 + 0.5 * np.tanh(z * (np.float32(0.7978845608) + np.float32(0.0356774081) * z * z))
-
-
-def solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Solve many small symmetric positive-definite systems: m (n, n, N), v (n, N) → (n, N).
-
-    Gaussian elimination written over the batch axis (no pivoting needed for SPD matrices):
-    a few dozen vector operations instead of one LAPACK call per system.
-    """
-    n = m.shape[0]
-    a = m.copy()
-    b = v.copy()
-    for i in range(n):
-        piv = np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
-        for j in range(i + 1, n):
-            f = a[j, i] / piv
-            a[j, i:] -= f * a[i, i:]
-            b[j] -= f * b[i]
-    x = np.empty_like(b)
-    for i in range(n - 1, -1, -1):
-        acc = b[i].copy()
-        for j in range(i + 1, n):
-            acc -= a[i, j] * x[j]
-        x[i] = acc / np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
-    return x
-
-
-@njit(cache=True, nogil=True)
-def _step_normal_equations(y, dt, z, phi, dens, a, b, m, inv_s, npar, free_slope):  # pragma: no cover - compiled
-    """JᵀJ (P, P, N) and Jᵀr (P, N) of the blurred-step model of :func:`step_fit` for N rays of T
-    samples (arrays (T, N) float32: grey levels, t − t_e, (t − t_e)/s, Φ, φ; (N,) float32: a, b, m,
-    1/s): the Jacobian columns ∂/∂(t_e, a, b, log s) (the first P − 1 of them with ``free_slope``,
-    then ∂/∂m), summed in float32 over the samples in order, one ray at a time."""
-    n_t, n = y.shape
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    used = np.empty(npar, np.int64)  # which of the five columns (t_e, a, b, log s, m) are fitted
-    for p in range(npar):
-        used[p] = p
-    if free_slope:
-        used[npar - 1] = 4
-    jtj = np.empty((npar, npar, n))
-    jtr = np.empty((npar, n))
-    sj = np.empty((5, 5), np.float32)
-    sr = np.empty(5, np.float32)
-    for k in range(n):
-        c = b[k] - a[k]
-        s00 = s01 = s02 = s03 = s04 = s11 = s12 = s13 = s14 = zero
-        s22 = s23 = s24 = s33 = s34 = s44 = r0 = r1 = r2 = r3 = r4 = zero
-        for i in range(n_t):
-            ph, de, d = phi[i, k], dens[i, k], dt[i, k]
-            mdt = m[k] * d
-            r = y[i, k] - ((a[k] + c * ph) + mdt * (one - ph))
-            cd = c * de - mdt * de
-            c0 = (-cd) * inv_s[k] - m[k] * (one - ph)
-            c1 = one - ph
-            c2 = ph
-            c3 = (-cd) * z[i, k]
-            c4 = d * (one - ph)
-            r0 += c0 * r
-            r1 += c1 * r
-            r2 += c2 * r
-            r3 += c3 * r
-            r4 += c4 * r
-            s00 += c0 * c0
-            s01 += c0 * c1
-            s02 += c0 * c2
-            s03 += c0 * c3
-            s04 += c0 * c4
-            s11 += c1 * c1
-            s12 += c1 * c2
-            s13 += c1 * c3
-            s14 += c1 * c4
-            s22 += c2 * c2
-            s23 += c2 * c3
-            s24 += c2 * c4
-            s33 += c3 * c3
-            s34 += c3 * c4
-            s44 += c4 * c4
-        sr[0], sr[1], sr[2], sr[3], sr[4] = r0, r1, r2, r3, r4
-        sj[0, 0], sj[0, 1], sj[0, 2], sj[0, 3], sj[0, 4] = s00, s01, s02, s03, s04
-        sj[1, 1], sj[1, 2], sj[1, 3], sj[1, 4] = s11, s12, s13, s14
-        sj[2, 2], sj[2, 3], sj[2, 4] = s22, s23, s24
-        sj[3, 3], sj[3, 4], sj[4, 4] = s33, s34, s44
-        for p in range(npar):
-            jtr[p, k] = sr[used[p]]
-            for q in range(p, npar):
-                jtj[p, q, k] = jtj[q, p, k] = sj[used[p], used[q]]
-    return jtj, jtr
-
-
 def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None,
              slope: np.ndarray | None = None, free_slope: bool = False):
     """Per-ray least-squares fit of a blurred step I(t) = a + (b − a) Φ((t − t_e) / s).
@@ -320,27 +227,16 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
         ls = np.broadcast_to(np.log(np.maximum(sigma0, 0.3))[:, None], shape).reshape(-1).astype(f32)
     else:
         ls = np.log(np.maximum(fixed_sigma, 0.3)).reshape(-1).astype(f32)
-    n_base = 4 if fixed_sigma is None else 3
-    npar = n_base + int(free_slope)
     m = np.zeros_like(te) if slope is None else slope.reshape(-1).astype(f32)
+    columns = fitted_columns(fixed_sigma is None, free_slope)
+    dt, z, tanh_z, gauss_z = (np.empty(y.shape, f32) for _ in range(4))
     for _ in range(iterations):
         s = np.exp(ls)
         inv_s = f32(1.0) / s
-        dt = tt - te
-        z = dt * inv_s
-        phi = _phi(z)
-        dens = np.exp(f32(-0.5) * z * z) * f32(0.3989422804014327)
-        jtj, jtr = _step_normal_equations(y, dt, z, phi, dens, a, b, m, inv_s, npar, free_slope)
-        jtj[range(npar), range(npar)] += 1e-9
-        step = solve_spd(jtj, jtr)
-        lim = np.maximum(1.0, s)  # at most one blur width (or 1 px) per step
-        step[0] = np.clip(step[0], -lim, lim)
-        step = np.nan_to_num(step).astype(f32)
-        te, a, b = te + step[0], a + step[1], b + step[2]
-        if fixed_sigma is None:
-            ls = ls + np.clip(step[3], -0.7, 0.7)
-        if free_slope:
-            m = m + step[npar - 1]
+        step_arguments(tt, te, inv_s, dt, z, tanh_z, gauss_z)
+        np.tanh(tanh_z, out=tanh_z)
+        np.exp(gauss_z, out=gauss_z)
+        gauss_newton_step(y, dt, z, tanh_z, gauss_z, a, b, m, te, ls, s, inv_s, columns)
     te = te.astype(float).reshape(shape)
     s = np.exp(ls.astype(float)).reshape(shape)
     good = np.isfinite(te) & np.isfinite(s) & (np.abs(te - t0) < 3.0 * np.maximum(sigma0[:, None], 1.0))

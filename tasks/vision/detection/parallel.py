@@ -36,7 +36,7 @@ import numpy as np
 
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
-_state: dict = {"threads": None, "pool": None, "pid": None, "workers": 0}
+_state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0}
 _spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
 
 
@@ -51,6 +51,20 @@ def set_threads(n: int | None) -> None:
 def threads() -> int:
     """Threads the detection stages are spread over (:func:`set_threads`; default 1)."""
     return _state["threads"] or 1
+
+
+def set_kernel_threads(n: int | None) -> None:
+    """Share the compiled kernels' dots among ``n`` threads (1: the caller's only); None: the
+    default, :func:`kernel_threads`."""
+    if n is not None and n < 1:
+        raise ValueError(f"threads must be at least 1, got {n}")
+    _state["kernel_threads"] = n
+
+
+def kernel_threads() -> int:
+    """Threads the compiled kernels (which release the GIL) share their dots among
+    (:func:`set_kernel_threads`; default: the CPUs this process may run on, at most 2)."""
+    return _state["kernel_threads"] or min(2, len(os.sched_getaffinity(0)))
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
@@ -98,6 +112,15 @@ def over_dots(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **s
     if parts is None:
         return fn(*per_dot, **shared)
     return tuple(np.concatenate(arrays, axis=0) for arrays in zip(*parts, strict=True))
+
+
+def over_ranges(run: Callable[[int, int], None], n: int) -> None:
+    """``run(lo, hi)`` over contiguous ranges covering 0…n, on :func:`kernel_threads` threads
+    (the first range on the calling thread); ``run`` writes its range's results into arrays it
+    shares with the other ranges. For compiled loops that release the GIL."""
+    bounds = chunk_bounds(n, kernel_threads())
+    if len(bounds) == 1 or _spread(lambda lo_hi: run(*lo_hi), bounds) is None:
+        run(0, n)
 
 
 def resize_area(image: np.ndarray, factor: int) -> np.ndarray:

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.vision.detection.conic_kernels import abs_sampson_distances, best_hypothesis_inliers
+
 
 def _design(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(..., 6) monomials [x², xy, y², x, y, 1]."""
@@ -31,6 +33,12 @@ def sampson_distance(conic: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndar
     """First-order geometric (Sampson) distance of points to conics, same units as x, y."""
     q, qx, qy = conic_value_and_grad(conic, x, y)
     return q / np.maximum(np.hypot(qx, qy), 1e-12)
+
+
+def abs_sampson_distance(conics: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """|:func:`sampson_distance`| (K, N) of K sets of points x, y (K, N) to their own conic (K, 6)."""
+    return abs_sampson_distances(np.ascontiguousarray(conics, dtype=float), np.ascontiguousarray(x, dtype=float),
+                                 np.ascontiguousarray(y, dtype=float))
 
 
 def fit_conic_lsq(
@@ -186,12 +194,6 @@ def ransac_ellipse(
     xs = np.where(vs, xs, 0.0)
     ys = np.where(vs, ys, 0.0)
     conics = conic_through_five(xs, ys)  # (K, H, 6)
-    good = vs.all(axis=-1) & is_ellipse(conics)
-    d = np.abs(sampson_distance(conics[:, :, None, :], x[:, None, :], y[:, None, :]))  # (K, H, N)
-    thr = np.broadcast_to(np.asarray(threshold, dtype=float), (k,))[:, None, None]
-    inl = (d < thr) & valid[:, None, :]
-    score = np.where(good, inl.sum(axis=-1), -1)
-    best = np.argmax(score, axis=1)
-    mask = inl[np.arange(k), best]
-    mask[score[np.arange(k), best] < 5] = False
-    return mask
+    thr = np.ascontiguousarray(np.broadcast_to(np.asarray(threshold, dtype=float), (k,)))
+    return best_hypothesis_inliers(conics, vs.all(axis=-1), np.ascontiguousarray(x, dtype=float),
+                                   np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(valid, dtype=bool), thr)

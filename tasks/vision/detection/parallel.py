@@ -126,11 +126,11 @@ def over_ranges(run: Callable[[int, int], None], n: int) -> None:
 def resize_area(image: np.ndarray, factor: int) -> np.ndarray:
     """``cv2.resize(image, (W // factor, H // factor), interpolation=cv2.INTER_AREA)`` of an (H, W)
     image. When factor divides H and W, each output row is the mean of its own ``factor`` input
-    rows (OpenCV's integer-scale path), so blocks of rows are resized on :func:`threads` threads
-    and give the same bits."""
+    rows (OpenCV's integer-scale path), so blocks of rows are resized on :func:`kernel_threads`
+    threads (OpenCV releases the GIL) and give the same bits."""
     h, w = image.shape[:2]
     size = (w // factor, h // factor)
-    bounds = chunk_bounds(size[1], threads() if h % factor == 0 and w % factor == 0 else 1)
+    bounds = chunk_bounds(size[1], kernel_threads() if h % factor == 0 and w % factor == 0 else 1)
     out = np.empty((size[1], size[0], *image.shape[2:]), image.dtype)
 
     def run(lo_hi: tuple[int, int]) -> None:

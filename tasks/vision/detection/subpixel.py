@@ -35,13 +35,13 @@ import cv2
 import numpy as np
 
 from tasks.vision.detection.conics import (
+    abs_sampson_distance,
     ellipse_params,
     ellipse_radius_along,
     fit_conic_lsq,
     is_ellipse,
     ransac_ellipse,
     ransac_samples,
-    sampson_distance,
 )
 from tasks.vision.detection.edge_fit import fit_dot_edges
 from tasks.vision.detection.parallel import over_dots, resize_area
@@ -164,12 +164,12 @@ def robust_ellipse_fit(x, y, w, origin, scale, iterations: int = 1):
     wts = w.astype(float)
     conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
     for _ in range(iterations):
-        d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+        d = abs_sampson_distance(conic, xn, yn) * scale[:, None]
         mad = masked_median(d, (wts > 0) & np.isfinite(d), default=1.0)
         thr = np.maximum(4.0 * 1.4826 * mad, 0.05)
         wts = w * (d < thr[:, None])
         conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
-    d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+    d = abs_sampson_distance(conic, xn, yn) * scale[:, None]
     return conic, wts > 0, d
 
 

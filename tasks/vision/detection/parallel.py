@@ -102,7 +102,17 @@ def over_dots(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **s
     """``fn(*per_dot, **shared)`` with the per-dot arrays (first axis: the n dots; None passes
     through) cut into chunks run on :func:`threads` threads; fn returns a tuple of arrays whose
     first axis is the chunk's dots, and the chunks' tuples are joined along it."""
-    bounds = chunk_bounds(n, threads())
+    return _over_dots(fn, n, threads(), per_dot, shared)
+
+
+def over_dots_compiled(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **shared) -> tuple:
+    """:func:`over_dots` on :func:`kernel_threads` threads, for a ``fn`` whose time goes to compiled
+    loops and large array operations that release the GIL."""
+    return _over_dots(fn, n, kernel_threads(), per_dot, shared)
+
+
+def _over_dots(fn: Callable[..., tuple], n: int, n_threads: int, per_dot: tuple, shared: dict) -> tuple:
+    bounds = chunk_bounds(n, n_threads)
 
     def run(lo_hi: tuple[int, int]) -> tuple:
         lo, hi = lo_hi

@@ -44,7 +44,7 @@ from tasks.vision.detection.conics import (
     ransac_samples,
 )
 from tasks.vision.detection.edge_fit import fit_dot_edges
-from tasks.vision.detection.parallel import over_dots, resize_area
+from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
 from tasks.vision.detection.stats import masked_median
 from tasks.vision.detection.step_kernels import fitted_columns, gauss_newton_step, step_arguments
 
@@ -408,7 +408,7 @@ def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p
     return c1, ax1, th1, sigma
 
 
-def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, free_slope: bool):
+def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, *, ang, p, free_slope: bool):
     """The two step fits of pass 2 (σ free, then σ from the per-dot blur model), optionally with a
     sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable) (K, R)."""
     te, s, conv, lev_in, lev_out, _ = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations,
@@ -479,13 +479,14 @@ def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang
     g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
     dts = (2 * half_w / (n2 - 1))[:, None]
     te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
-    te, conv, s, s2, usable = _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, False)
+    te, conv, s, s2, usable = over_dots_compiled(_step_fits, len(te), prof, t, te, i_in, i_out, sigma, contrast, med_c,
+                                                 inside, ang=ang, p=p, free_slope=False)
     if p.inner_slope:  # dots darker on one side: refit them with a sloped inside, which would move t_e
         shaded = shading(prof, t, te, np.sqrt(s2), usable, ang, med_c, axs[:, 1]) > p.min_shading
         if shaded.any():
             k = np.flatnonzero(shaded)
             fits = _step_fits(prof[k], t[k], te[k], i_in[k], i_out[k], sigma[k], contrast[k], med_c[k], inside[k],
-                              ang, p, True)
+                              ang=ang, p=p, free_slope=True)
             for full, part in zip((te, conv, s, s2, usable), fits, strict=True):
                 full[k] = part
     valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])

@@ -45,6 +45,7 @@ from tasks.vision.detection.conics import (
 )
 from tasks.vision.detection.edge_fit import fit_dot_edges
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
+from tasks.vision.detection.ray_kernels import derivative_peaks, ray_coordinates
 from tasks.vision.detection.stats import masked_median
 from tasks.vision.detection.step_kernels import fitted_columns, gauss_newton_step, step_arguments
 
@@ -131,20 +132,9 @@ def sample_profiles(crop: Crop, centres: np.ndarray, angles: np.ndarray, t: np.n
     Also returns the (K, R, T) mask of samples inside the full image.
     """
     k, r, n = t.shape
-    lv = float(crop.level)
-    t = t.astype(np.float32, copy=False)
-    cs = np.cos(angles).astype(np.float32)[None, :, None]
-    sn = np.sin(angles).astype(np.float32)[None, :, None]
-    u0, v0 = crop.origin
-    mx = (centres[:, 0, None, None] - u0).astype(np.float32) + cs * t  # (K, R, T) crop px (full scale)
-    my = (centres[:, 1, None, None] - v0).astype(np.float32) + sn * t
-    h, w = crop.full
-    inside = (mx >= -u0) & (mx <= w - 1 - u0) & (my >= -v0) & (my <= h - 1 - v0)
-    if crop.level > 1:
-        mx = (mx + 0.5) / lv - 0.5
-        my = (my + 0.5) / lv - 0.5
-    mx = mx.reshape(k * r, n)
-    my = my.reshape(k * r, n)
+    mx, my, inside = ray_coordinates(np.ascontiguousarray(centres, dtype=float), np.cos(angles).astype(np.float32),
+                                     np.sin(angles).astype(np.float32), np.ascontiguousarray(t),
+                                     crop.origin, crop.full, crop.level)
     out = np.empty((k * r, n), crop.data.dtype)
     step = 30000  # cv2.remap map height must stay below SHRT_MAX
     for i in range(0, k * r, step):
@@ -171,32 +161,6 @@ def robust_ellipse_fit(x, y, w, origin, scale, iterations: int = 1):
         conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
     d = abs_sampson_distance(conic, xn, yn) * scale[:, None]
     return conic, wts > 0, d
-
-
-def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: float, step: np.ndarray):
-    """Pass-1 rim per ray: (t_peak (K, R), peak height (K, R), FWHM of the peak (K, R) px).
-
-    The polarity-signed central difference is maximised along each ray and refined by a parabola.
-    step: (K,) sample spacing px (samples where ``t`` was clipped repeat and are ignored).
-    """
-    k, r, _ = prof.shape
-    dt = t[..., 2:] - t[..., :-2]
-    d = (prof[..., 2:] - prof[..., :-2]) * sign
-    ok = (dt > 1e-6) & inside[..., 2:] & inside[..., :-2]
-    d = np.where(ok, d / np.maximum(dt, 1e-6), -np.inf)  # derivative at samples 1 … T−2
-    j = np.argmax(d, axis=2)
-    kk, rr = np.meshgrid(np.arange(k), np.arange(r), indexing="ij")
-    jc = np.clip(j, 1, d.shape[2] - 2)
-    d0, dm, dp = d[kk, rr, jc], d[kk, rr, jc - 1], d[kk, rr, jc + 1]
-    peak = d[kk, rr, j]
-    with np.errstate(all="ignore"):
-        den = dm - 2 * d0 + dp
-        off = np.where((den < 0) & np.isfinite(den), 0.5 * (dm - dp) / den, 0.0)
-    off = np.clip(off, -0.5, 0.5)
-    step = np.broadcast_to(step[:, None], (k, r))
-    tp = np.where(j == jc, t[kk, rr, jc + 1] + off * step, t[kk, rr, j + 1])
-    fwhm = ((d > 0.5 * peak[..., None]) & np.isfinite(d)).sum(axis=2) * step
-    return tp, peak, fwhm
 
 
 def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None,
@@ -388,7 +352,8 @@ def _pass1_profiles(crop, centres, axes, theta, out_lim, coarse_factor, p):
 def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p):
     """Robust rim ellipses and blur σ per dot (see module docstring) from the pass-1 rays
     (:func:`_pass1_profiles`); samples: (K, H, 5) RANSAC draws (:func:`ransac_samples`)."""
-    tp, peak, fwhm = derivative_peaks(prof, t, inside, sign, 2.0 * band / (p.pass1_samples - 1))
+    tp, peak, fwhm = derivative_peaks(np.ascontiguousarray(prof), np.ascontiguousarray(t), np.ascontiguousarray(inside),
+                                      sign, 2.0 * band / (p.pass1_samples - 1))
     good = np.isfinite(peak) & (peak > 0)
     med_peak = masked_median(peak, good, default=np.inf)
     valid = good & (peak > 0.3 * med_peak[:, None])

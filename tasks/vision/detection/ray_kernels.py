@@ -92,3 +92,23 @@ def derivative_peaks(prof, t, inside, sign, step):  # pragma: no cover - compile
             peak[k, r] = pk
             fwhm[k, r] = count * step[k]
     return tp, peak, fwhm
+
+
+@njit(**_COMPILED)
+def flatten(prof, t, gradient, cos_a, sin_a):  # pragma: no cover - compiled
+    """Profiles (K, R, T) float32 divided by the gain relative to each ray's origin,
+    1 + ∇g/g·(p − c) clipped to [0.5, 2] (float32): gradient (K, 2) ∇g/g 1/px at the origins,
+    t (K, R, T) px along the rays at angles with cosines and sines cos_a, sin_a (R,)."""
+    k_dots, n_rays, n_t = prof.shape
+    out = np.empty_like(prof)
+    for k in range(k_dots):
+        for r in range(n_rays):
+            along = gradient[k, 0] * cos_a[r] + gradient[k, 1] * sin_a[r]
+            for i in range(n_t):
+                rel = 1.0 + t[k, r, i] * along
+                if rel < 0.5:
+                    rel = 0.5
+                elif rel > 2.0:
+                    rel = 2.0
+                out[k, r, i] = prof[k, r, i] / np.float32(rel)
+    return out

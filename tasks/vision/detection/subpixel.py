@@ -45,7 +45,7 @@ from tasks.vision.detection.conics import (
 )
 from tasks.vision.detection.edge_fit import fit_dot_edges
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
-from tasks.vision.detection.ray_kernels import derivative_peaks, ray_coordinates
+from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.stats import masked_median
 from tasks.vision.detection.step_kernels import fitted_columns, gauss_newton_step, step_arguments
 
@@ -314,10 +314,8 @@ def fit_gain_field(prof: np.ndarray, t: np.ndarray, ok: np.ndarray, cen: np.ndar
 def flatten_profiles(prof: np.ndarray, t: np.ndarray, cen: np.ndarray, ang: np.ndarray,
                      gain: GainField) -> np.ndarray:
     """Profiles (K, R, T) divided by the gain relative to each dot centre, 1 + ∇g/g·(p − c)."""
-    g = gain.gradient(cen)  # (K, 2) 1/px
-    rel = 1.0 + t * (g[:, 0, None, None] * np.cos(ang)[None, :, None]
-                     + g[:, 1, None, None] * np.sin(ang)[None, :, None])
-    return prof / np.clip(rel, 0.5, 2.0).astype(np.float32)
+    return flatten(np.ascontiguousarray(prof, dtype=np.float32), np.ascontiguousarray(t, dtype=float),
+                   np.ascontiguousarray(gain.gradient(cen)), np.cos(ang), np.sin(ang))
 
 
 def curvature_correction(s2: np.ndarray, ang: np.ndarray, axes: np.ndarray, theta: np.ndarray) -> np.ndarray:

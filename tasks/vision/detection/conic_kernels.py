@@ -79,3 +79,50 @@ def best_hypothesis_inliers(conics, complete, x, y, valid, threshold):  # pragma
             for i in range(n):
                 mask[k, i] = _abs_sampson(c, x[k, i], y[k, i]) < threshold[k] and valid[k, i]
     return mask
+
+
+@njit(**_COMPILED)
+def trace_constraint_rows(x, y):  # pragma: no cover - compiled
+    """Rows (K, N, 5) [x² − y², xy, x, y, 1] and right-hand sides (K, N) −y² of the conic fit
+    A (x² − y²) + B xy + D x + E y + F = −y², in the points' own precision."""
+    k_sets, n = x.shape
+    m = np.empty((k_sets, n, 5), x.dtype)
+    rhs = np.empty((k_sets, n), x.dtype)
+    for k in range(k_sets):
+        for i in range(n):
+            xi, yi = x[k, i], y[k, i]
+            m[k, i, 0] = xi * xi - yi * yi
+            m[k, i, 1] = xi * yi
+            m[k, i, 2] = xi
+            m[k, i, 3] = yi
+            m[k, i, 4] = 1.0
+            rhs[k, i] = -(yi * yi)
+    return m, rhs
+
+
+@njit(**_COMPILED)
+def weighted_rows(m, w):  # pragma: no cover - compiled
+    """(K, N, 5) float64 rows m (K, N, 5) times their weights w (K, N)."""
+    k_sets, n, n_c = m.shape
+    out = np.empty((k_sets, n, n_c))
+    for k in range(k_sets):
+        for i in range(n):
+            wi = w[k, i]
+            for c in range(n_c):
+                out[k, i, c] = m[k, i, c] * wi
+    return out
+
+
+@njit(**_COMPILED)
+def gradient_squared(conics, x, y):  # pragma: no cover - compiled
+    """|∇Q|² (K, N) of each set's conic (K, 6) at its points x, y (K, N)."""
+    k_sets, n = x.shape
+    out = np.empty((k_sets, n))
+    for k in range(k_sets):
+        a, b, c, d, e = conics[k, 0], conics[k, 1], conics[k, 2], conics[k, 3], conics[k, 4]
+        for i in range(n):
+            xi, yi = x[k, i], y[k, i]
+            qx = 2 * a * xi + b * yi + d
+            qy = b * xi + 2 * c * yi + e
+            out[k, i] = qx * qx + qy * qy
+    return out

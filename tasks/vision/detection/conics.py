@@ -12,7 +12,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.vision.detection.conic_kernels import abs_sampson_distances, best_hypothesis_inliers
+from tasks.vision.detection.conic_kernels import (
+    abs_sampson_distances,
+    best_hypothesis_inliers,
+    gradient_squared,
+    trace_constraint_rows,
+    weighted_rows,
+)
 
 
 def _design(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -53,14 +59,13 @@ def fit_conic_lsq(
     Returns (K, 6) conics; rows with fewer than 5 weighted points come back as NaN.
     """
     w = np.asarray(weights, dtype=float)
-    # A (x² − y²) + B xy + D x + E y + F = −y²
-    m = np.stack([x * x - y * y, x * y, x, y, np.ones_like(x)], axis=-1)  # (K, N, 5)
-    rhs = -(y * y)  # (K, N)
+    x, y = (np.ascontiguousarray(v, dtype=np.result_type(x, y)) for v in (x, y))
+    m, rhs = trace_constraint_rows(x, y)  # A (x² − y²) + B xy + D x + E y + F = −y²: (K, N, 5), (K, N)
     enough = (w > 0).sum(axis=1) >= 5
     conic = np.full((*x.shape[:-1], 6), np.nan)
     ww = w.copy()
     for it in range(sampson_iterations + 1):
-        mtw = np.swapaxes(m * ww[..., None], 1, 2)  # (K, 5, N)
+        mtw = np.swapaxes(weighted_rows(m, np.ascontiguousarray(ww)), 1, 2)  # (K, 5, N)
         ata = np.matmul(mtw, m)  # (K, 5, 5)
         atb = np.matmul(mtw, rhs[..., None])[..., 0]
         ridge = 1e-12 * np.trace(ata, axis1=1, axis2=2)[:, None, None] * np.eye(5)
@@ -69,8 +74,7 @@ def fit_conic_lsq(
         p = np.linalg.solve(ata, atb[..., None])[..., 0]  # (K, 5)
         conic = np.stack([p[:, 0], p[:, 1], 1.0 - p[:, 0], p[:, 2], p[:, 3], p[:, 4]], axis=-1)
         if it < sampson_iterations:
-            _, qx, qy = conic_value_and_grad(conic[:, None, :], x, y)
-            g2 = qx * qx + qy * qy
+            g2 = gradient_squared(conic, x, y)
             ref = (w * g2).sum(axis=1, keepdims=True) / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
             ref = np.where(np.isfinite(ref) & (ref > 0), ref, 1.0)
             ww = w * (ref / np.maximum(g2, 1e-6 * ref))

@@ -8,12 +8,16 @@ result. numpy's array loops and the compiled loops (``nogil``) release the GIL, 
 run on separate cores. :func:`resize_area` does the same for the area-averaged copies of the image
 (the coarse search's downsampling, the pass-2 crops of blurry rims), in blocks of rows.
 
-The spreading is off by default (one thread, the caller's) and set by :func:`set_threads`. On the
-2-CPU bench host, idle, two threads gave RRHT no wall time (28.6 ms per full-size image against
-28.2 ms with one) for 30 % more CPU time (``bench/bench_detection.py`` and ``--threads 1``, commit
-5dc2319): per dot the stages are many small array operations, and their Python between them holds
-the GIL. A host with more cores or larger plates may differ: measure with ``--threads N`` there.
-One caller at a time spreads its work; others run theirs whole.
+Two settings. :func:`set_threads` spreads whole stages (:func:`over_dots`); it is off by default
+(one thread, the caller's): on the 2-CPU bench host, idle, two threads gave RRHT no wall time
+(28.6 ms per full-size image against 28.2 ms with one) for 30 % more CPU time
+(``bench/bench_detection.py`` and ``--threads 1``, commit 5dc2319): per dot those stages are many
+small array operations, and their Python between them holds the GIL. :func:`set_kernel_threads`
+spreads the parts whose time is compiled loops, OpenCV or large array operations, all of which
+release the GIL (:func:`over_dots_compiled`, :func:`over_ranges`, :func:`resize_area`: the pixel
+edge fit's normal equations, pass 2's step fits, the area-averaged copies); by default over the
+CPUs the process may run on, at most 2 (docs/detector-comparison.md, "Speed", for what it gains
+and costs). One caller at a time spreads its work; others run theirs whole.
 
 SYNOPSIS
 

@@ -4,7 +4,7 @@
     .venv/bin/python bench/bench_detection.py --quick    # 4 images, 3 repeats
     .venv/bin/python bench/bench_detection.py --hough    # also time the HoughCircles baseline
     taskset -c 0 .venv/bin/python bench/bench_detection.py --threads 1    # both detectors on one core
-    .venv/bin/python bench/bench_detection.py --kernel-threads 1          # RRHT's compiled kernels on one thread
+    .venv/bin/python bench/bench_detection.py --kernel-threads 2          # RRHT's compiled kernels on 2 threads
 
 Images are rendered by ``tasks.simulation.render`` (3072×2048, the prototype's two cameras and plates, lens
 distortion, defocus, vignetting, illumination gradient, shot and read noise) at poses with in-plane
@@ -20,7 +20,8 @@ helper threads; on free cores about the wall time when the helpers keep up). ``-
 OpenCV's threads (``cv2.setNumThreads``: findCirclesGrid's and RRHT's OpenCV calls) and RRHT's own
 (:mod:`tasks.vision.detection.parallel`, both its stage and its kernel threads) to N; by default OpenCV
 uses the CPUs the process may run on, RRHT's stages one thread and its compiled kernels (those that
-release the GIL) the CPUs, at most 2; ``--kernel-threads N`` sets only the latter.
+release the GIL) 2 threads while the host has a free CPU (load average), else one;
+``--kernel-threads N`` sets only the latter.
 Prints per-image rows, the summary ratios, and where RRHT's time goes.
 """
 
@@ -89,9 +90,9 @@ def main() -> None:
     ap.add_argument("--hint", action="store_true", help="pass px_per_mm_hint to every detector")
     ap.add_argument("--hough", action="store_true", help="also run the HoughCircles baseline")
     ap.add_argument("--threads", type=int, default=None,
-                    help="OpenCV's and RRHT's threads (default: OpenCV the CPUs, RRHT one, its kernels ≤ 2)")
+                    help="OpenCV's and RRHT's threads (default: OpenCV the CPUs, RRHT one, its kernels 1–2)")
     ap.add_argument("--kernel-threads", type=int, default=None,
-                    help="threads of RRHT's compiled kernels only (default: the CPUs, at most 2)")
+                    help="threads of RRHT's compiled kernels only (default: 2 while a CPU is free, else 1)")
     args = ap.parse_args()
     if args.threads is not None:
         cv2.setNumThreads(args.threads)

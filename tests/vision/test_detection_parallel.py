@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import threading
 from itertools import pairwise
 
@@ -103,6 +104,21 @@ def test_over_ranges_covers_every_dot_once_on_the_kernel_threads(restore_threads
     assert len(seen) == 1 and np.array_equal(out, np.full(30, 2.0))
     with pytest.raises(ValueError, match="at least 1"):
         parallel.set_kernel_threads(0)
+
+
+def test_kernel_threads_are_two_while_a_cpu_is_free_and_one_on_a_busy_host(monkeypatch, restore_threads):
+    clock = itertools.count(1e6, 10.0)  # every reading 10 s after the last: the load is read again
+    monkeypatch.setattr(parallel.time, "monotonic", lambda: next(clock))
+    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {0, 1})
+    parallel.set_kernel_threads(None)
+    for load, want in ((0.3, 2), (1.4, 2), (1.6, 1), (9.5, 1)):
+        monkeypatch.setattr(parallel.os, "getloadavg", lambda load=load: (load, load, load))
+        assert parallel.kernel_threads() == want, load
+    monkeypatch.setattr(parallel.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {0})
+    assert parallel.kernel_threads() == 1
+    parallel.set_kernel_threads(3)
+    assert parallel.kernel_threads() == 3
 
 
 def test_chunks_cover_every_dot_once_and_small_batches_stay_whole():

@@ -15,9 +15,10 @@ Two settings. :func:`set_threads` spreads whole stages (:func:`over_dots`); it i
 small array operations, and their Python between them holds the GIL. :func:`set_kernel_threads`
 spreads the parts whose time is compiled loops, OpenCV or large array operations, all of which
 release the GIL (:func:`over_dots_compiled`, :func:`over_ranges`, :func:`resize_area`: the pixel
-edge fit's normal equations, pass 2's step fits, the area-averaged copies); by default over the
-CPUs the process may run on, at most 2 (docs/detector-comparison.md, "Speed", for what it gains
-and costs). One caller at a time spreads its work; others run theirs whole.
+edge fit's normal equations, pass 2's step fits, the area-averaged copies); by default on 2
+threads while the host has a free CPU, else on the caller's (:func:`kernel_threads`;
+docs/detector-comparison.md, "Speed", for what it gains and costs). One caller at a time spreads
+its work; others run theirs whole.
 
 SYNOPSIS
 
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
@@ -40,7 +42,9 @@ import numpy as np
 
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
-_state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0}
+FREE_CPU_MARGIN = 0.5  # a CPU counts as free while the load average stays this far below the CPUs
+_state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0,
+                "load_read": -1e9, "free_core": False}
 _spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
 
 
@@ -67,8 +71,18 @@ def set_kernel_threads(n: int | None) -> None:
 
 def kernel_threads() -> int:
     """Threads the compiled kernels (which release the GIL) share their dots among
-    (:func:`set_kernel_threads`; default: the CPUs this process may run on, at most 2)."""
-    return _state["kernel_threads"] or min(2, len(os.sched_getaffinity(0)))
+    (:func:`set_kernel_threads`). Default: 2 while a CPU this process may run on is free (the
+    host's 1-minute load average at least half a CPU below their number, read at most once a
+    second), else 1: a helper thread that has to wait for a core costs CPU time and gains no wall
+    time (docs/detector-comparison.md, "Speed"). The results are the same either way."""
+    if _state["kernel_threads"]:
+        return _state["kernel_threads"]
+    now = time.monotonic()
+    if now - _state["load_read"] >= 1.0:
+        cpus = len(os.sched_getaffinity(0))
+        _state["free_core"] = cpus >= 2 and os.getloadavg()[0] <= cpus - FREE_CPU_MARGIN
+        _state["load_read"] = now
+    return 2 if _state["free_core"] else 1
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:

@@ -169,8 +169,9 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
 
     prof, t: (K, R, T) grey levels and their distances along each ray; t0, i_in, i_out: (K, R)
     starting values; sigma0: (K,) starting blur (px). Gauss–Newton on (t_e, a, b, log s), or on
-    (t_e, a, b) with s = ``fixed_sigma`` (K, R), all rays at once (arrays laid out (T, K·R) so
-    that every sum over a profile is a fast leading-axis reduction). Unlike the area locator,
+    (t_e, a, b) with s = ``fixed_sigma`` (K, R), all rays at once (arrays laid out (T, K·R); each
+    iteration is two compiled loops over rows of rays, :mod:`tasks.vision.detection.step_kernels`,
+    around numpy's float32 tanh and exp). Unlike the area locator,
     which weights every sample of the window equally, this weights samples by how much they tell
     about the edge position, so the noise of the flat parts of the window hardly enters t_e.
     slope: (K, R) a slope m of the dot's level towards the rim (grey levels / px), the model then

@@ -20,7 +20,7 @@ helper threads; on free cores about the wall time when the helpers keep up). ``-
 OpenCV's threads (``cv2.setNumThreads``: findCirclesGrid's and RRHT's OpenCV calls) and RRHT's own
 (:mod:`tasks.vision.detection.parallel`, both its stage and its kernel threads) to N; by default OpenCV
 uses the CPUs the process may run on, RRHT's stages one thread and its compiled kernels (those that
-release the GIL) 2 threads while the host has a free CPU (load average), else one;
+release the GIL) 2 threads while the host is not busy (load average below the CPUs), else one;
 ``--kernel-threads N`` sets only the latter.
 Prints per-image rows, the summary ratios, and where RRHT's time goes.
 """
@@ -92,7 +92,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None,
                     help="OpenCV's and RRHT's threads (default: OpenCV the CPUs, RRHT one, its kernels 1–2)")
     ap.add_argument("--kernel-threads", type=int, default=None,
-                    help="threads of RRHT's compiled kernels only (default: 2 while a CPU is free, else 1)")
+                    help="threads of RRHT's compiled kernels only (default: 2 unless the host is busy, else 1)")
     args = ap.parse_args()
     if args.threads is not None:
         cv2.setNumThreads(args.threads)

@@ -42,7 +42,6 @@ import numpy as np
 
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
-FREE_CPU_MARGIN = 0.5  # a CPU counts as free while the load average stays this far below the CPUs
 _state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0,
                 "load_read": -1e9, "free_core": False}
 _spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
@@ -71,16 +70,17 @@ def set_kernel_threads(n: int | None) -> None:
 
 def kernel_threads() -> int:
     """Threads the compiled kernels (which release the GIL) share their dots among
-    (:func:`set_kernel_threads`). Default: 2 while a CPU this process may run on is free (the
-    host's 1-minute load average at least half a CPU below their number, read at most once a
-    second), else 1: a helper thread that has to wait for a core costs CPU time and gains no wall
-    time (docs/detector-comparison.md, "Speed"). The results are the same either way."""
+    (:func:`set_kernel_threads`). Default: 2 while the host is not busy (its 1-minute load average
+    below the number of CPUs this process may run on, read at most once a second; a lone detection
+    with OpenCV's threads keeps it about 1–1.5 on 2 CPUs), else 1: a helper thread that has to wait
+    for a core costs CPU time and gains no wall time (docs/detector-comparison.md, "Speed"). The
+    results are the same either way."""
     if _state["kernel_threads"]:
         return _state["kernel_threads"]
     now = time.monotonic()
     if now - _state["load_read"] >= 1.0:
         cpus = len(os.sched_getaffinity(0))
-        _state["free_core"] = cpus >= 2 and os.getloadavg()[0] <= cpus - FREE_CPU_MARGIN
+        _state["free_core"] = cpus >= 2 and os.getloadavg()[0] < cpus
         _state["load_read"] = now
     return 2 if _state["free_core"] else 1
 

@@ -2,10 +2,11 @@
 
 A conic is the 6-vector ``(A, B, C, D, E, F)`` of ``A x² + B xy + C y² + D x + E y + F = 0``.
 Every function works on a batch of K point sets at once, each padded to the same length N with
-a boolean ``valid`` mask, so that fitting all dots of a plate is one numpy call. Points are
-given in px; each set is normalised internally (shifted by ``origin`` and divided by ``scale``)
-for conditioning, and conics are returned in those normalised coordinates together with the
-``origin`` (K, 2) px and ``scale`` (K,) px needed to map back (see :func:`ellipse_params`).
+a boolean ``valid`` mask, so that fitting all dots of a plate is one call (the per-point loops are
+compiled, :mod:`tasks.vision.detection.conic_kernels`). Points are given in px; each set is
+normalised internally (shifted by ``origin`` and divided by ``scale``) for conditioning, and
+conics are returned in those normalised coordinates together with the ``origin`` (K, 2) px and
+``scale`` (K,) px needed to map back (see :func:`ellipse_params`).
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@
     .venv/bin/python bench/bench_detection.py --quick    # 4 images, 3 repeats
     .venv/bin/python bench/bench_detection.py --hough    # also time the HoughCircles baseline
     taskset -c 0 .venv/bin/python bench/bench_detection.py --threads 1    # both detectors on one core
+    .venv/bin/python bench/bench_detection.py --kernel-threads 2          # RRHT's compiled kernels on 2 threads
 
 Images are rendered by ``tasks.simulation.render`` (3072×2048, the prototype's two cameras and plates, lens
 distortion, defocus, vignetting, illumination gradient, shot and read noise) at poses with in-plane
@@ -17,8 +18,10 @@ thread; on a host busy with other jobs the wall time also counts the waits for a
 both kept, and the calling thread's CPU time (``time.thread_time``: the work that does not run on
 helper threads; on free cores about the wall time when the helpers keep up). ``--threads N`` sets
 OpenCV's threads (``cv2.setNumThreads``: findCirclesGrid's and RRHT's OpenCV calls) and RRHT's own
-(:mod:`tasks.vision.detection.parallel`) to N; by default OpenCV uses the CPUs the process may run
-on, RRHT one (tasks.vision.detection.parallel).
+(:mod:`tasks.vision.detection.parallel`, both its stage and its kernel threads) to N; by default OpenCV
+uses the CPUs the process may run on, RRHT's stages one thread and its compiled kernels (those that
+release the GIL) 2 threads while the host is not busy (load average below the CPUs), else one;
+``--kernel-threads N`` sets only the latter.
 Prints per-image rows, the summary ratios, and where RRHT's time goes.
 """
 
@@ -41,7 +44,7 @@ from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate, facing_camera_pose
 from tasks.simulation.render import ImagingConditions, plate_in_view, render_plate_image, true_dot_centres
 from tasks.vision.detection import detect_grid
-from tasks.vision.detection.parallel import set_threads, threads
+from tasks.vision.detection.parallel import kernel_threads, set_kernel_threads, set_threads, threads
 
 DIST1 = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
 DIST2 = (-0.071, 0.132, -0.00009, 0.00015, -0.056)
@@ -87,15 +90,20 @@ def main() -> None:
     ap.add_argument("--hint", action="store_true", help="pass px_per_mm_hint to every detector")
     ap.add_argument("--hough", action="store_true", help="also run the HoughCircles baseline")
     ap.add_argument("--threads", type=int, default=None,
-                    help="OpenCV's and RRHT's threads (default: OpenCV the CPUs, RRHT one)")
+                    help="OpenCV's and RRHT's threads (default: OpenCV the CPUs, RRHT one, its kernels 1–2)")
+    ap.add_argument("--kernel-threads", type=int, default=None,
+                    help="threads of RRHT's compiled kernels only (default: 2 unless the host is busy, else 1)")
     args = ap.parse_args()
     if args.threads is not None:
         cv2.setNumThreads(args.threads)
         set_threads(args.threads)
+        set_kernel_threads(args.threads)
+    if args.kernel_threads is not None:
+        set_kernel_threads(args.kernel_threads)
     n_img, reps = (4, 3) if args.quick else (args.images, args.repeat)
     dets = ["rrht", "blob"] + (["hough"] if args.hough else [])
     print(f"cv2 {cv2.__version__}, numpy {np.__version__}, cv2 threads {cv2.getNumThreads()}, RRHT threads "
-          f"{threads()}, CPUs {len(os.sched_getaffinity(0))}; "
+          f"{threads()} (kernels {kernel_threads()}), CPUs {len(os.sched_getaffinity(0))}; "
           f"{n_img} images, {reps} repeats, hint={args.hint}")
     rows = []
     stage_sums: dict[str, list[float]] = {}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import threading
 from itertools import pairwise
 
@@ -38,6 +39,7 @@ CASES = {
 def restore_threads():
     yield
     parallel.set_threads(None)
+    parallel.set_kernel_threads(None)
 
 
 def detection_arrays(det) -> dict[str, np.ndarray]:
@@ -53,8 +55,9 @@ def test_detections_are_bit_identical_with_one_two_and_three_threads(case, resto
                         lambda *a, **k: local.append(1) or perspective.correct_bias_local(*a, **k))
     img = render_plate_image(cam, plate, T, ImagingConditions(), seed=5)
     runs = []
-    for n in (1, 2, 3):
+    for n in (1, 2, 3):  # the stages and the compiled kernels on n threads
         parallel.set_threads(n)
+        parallel.set_kernel_threads(n)
         det = framework.detect_rrht(img, plate, expected_rotation_deg=angle)
         assert det.ok, det.reason
         runs.append(detection_arrays(det))
@@ -85,6 +88,39 @@ def test_over_dots_runs_the_chunks_on_separate_threads_and_joins_them_in_order(r
     assert len(seen) == 1
 
 
+def test_over_ranges_covers_every_dot_once_on_the_kernel_threads(restore_threads):
+    seen, out = set(), np.zeros(30)
+
+    def add_one(lo, hi):
+        seen.add(threading.get_ident())
+        out[lo:hi] += 1
+
+    parallel.set_kernel_threads(2)
+    parallel.over_ranges(add_one, 30)
+    assert len(seen) == 2 and np.array_equal(out, np.ones(30))
+    seen.clear()
+    parallel.set_kernel_threads(1)
+    parallel.over_ranges(add_one, 30)
+    assert len(seen) == 1 and np.array_equal(out, np.full(30, 2.0))
+    with pytest.raises(ValueError, match="at least 1"):
+        parallel.set_kernel_threads(0)
+
+
+def test_kernel_threads_are_two_on_a_quiet_host_and_one_on_a_busy_one(monkeypatch, restore_threads):
+    clock = itertools.count(1e6, 10.0)  # every reading 10 s after the last: the load is read again
+    monkeypatch.setattr(parallel.time, "monotonic", lambda: next(clock))
+    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {0, 1})
+    parallel.set_kernel_threads(None)
+    for load, want in ((0.3, 2), (1.6, 2), (2.1, 1), (9.5, 1)):
+        monkeypatch.setattr(parallel.os, "getloadavg", lambda load=load: (load, load, load))
+        assert parallel.kernel_threads() == want, load
+    monkeypatch.setattr(parallel.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {0})
+    assert parallel.kernel_threads() == 1
+    parallel.set_kernel_threads(3)
+    assert parallel.kernel_threads() == 3
+
+
 def test_chunks_cover_every_dot_once_and_small_batches_stay_whole():
     for n in (0, 1, 7, 8, 49, 50):
         for k in (1, 2, 3, 4):
@@ -103,7 +139,7 @@ def test_resize_area_matches_opencv_with_any_thread_count(shape, restore_threads
     for factor in (2, 3, 4, 5):
         want = cv2.resize(img, (shape[1] // factor, shape[0] // factor), interpolation=cv2.INTER_AREA)
         for n in (1, 2, 3):
-            parallel.set_threads(n)
+            parallel.set_kernel_threads(n)
             got = parallel.resize_area(img, factor)
             assert got.shape == want.shape and np.array_equal(got, want), (factor, n)
 

@@ -2,15 +2,24 @@
 
 A conic is the 6-vector ``(A, B, C, D, E, F)`` of ``A x² + B xy + C y² + D x + E y + F = 0``.
 Every function works on a batch of K point sets at once, each padded to the same length N with
-a boolean ``valid`` mask, so that fitting all dots of a plate is one numpy call. Points are
-given in px; each set is normalised internally (shifted by ``origin`` and divided by ``scale``)
-for conditioning, and conics are returned in those normalised coordinates together with the
-``origin`` (K, 2) px and ``scale`` (K,) px needed to map back (see :func:`ellipse_params`).
+a boolean ``valid`` mask, so that fitting all dots of a plate is one call (the per-point loops are
+compiled, :mod:`tasks.vision.detection.conic_kernels`). Points are given in px; each set is
+normalised internally (shifted by ``origin`` and divided by ``scale``) for conditioning, and
+conics are returned in those normalised coordinates together with the ``origin`` (K, 2) px and
+``scale`` (K,) px needed to map back (see :func:`ellipse_params`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from tasks.vision.detection.conic_kernels import (
+    abs_sampson_distances,
+    best_hypothesis_inliers,
+    gradient_squared,
+    trace_constraint_rows,
+    weighted_rows,
+)
 
 
 def _design(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -33,6 +42,12 @@ def sampson_distance(conic: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndar
     return q / np.maximum(np.hypot(qx, qy), 1e-12)
 
 
+def abs_sampson_distance(conics: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """|:func:`sampson_distance`| (K, N) of K sets of points x, y (K, N) to their own conic (K, 6)."""
+    return abs_sampson_distances(np.ascontiguousarray(conics, dtype=float), np.ascontiguousarray(x, dtype=float),
+                                 np.ascontiguousarray(y, dtype=float))
+
+
 def fit_conic_lsq(
     x: np.ndarray, y: np.ndarray, weights: np.ndarray, sampson_iterations: int = 2
 ) -> np.ndarray:
@@ -45,14 +60,13 @@ def fit_conic_lsq(
     Returns (K, 6) conics; rows with fewer than 5 weighted points come back as NaN.
     """
     w = np.asarray(weights, dtype=float)
-    # A (x² − y²) + B xy + D x + E y + F = −y²
-    m = np.stack([x * x - y * y, x * y, x, y, np.ones_like(x)], axis=-1)  # (K, N, 5)
-    rhs = -(y * y)  # (K, N)
+    x, y = (np.ascontiguousarray(v, dtype=np.result_type(x, y)) for v in (x, y))
+    m, rhs = trace_constraint_rows(x, y)  # A (x² − y²) + B xy + D x + E y + F = −y²: (K, N, 5), (K, N)
     enough = (w > 0).sum(axis=1) >= 5
     conic = np.full((*x.shape[:-1], 6), np.nan)
     ww = w.copy()
     for it in range(sampson_iterations + 1):
-        mtw = np.swapaxes(m * ww[..., None], 1, 2)  # (K, 5, N)
+        mtw = np.swapaxes(weighted_rows(m, np.ascontiguousarray(ww)), 1, 2)  # (K, 5, N)
         ata = np.matmul(mtw, m)  # (K, 5, 5)
         atb = np.matmul(mtw, rhs[..., None])[..., 0]
         ridge = 1e-12 * np.trace(ata, axis1=1, axis2=2)[:, None, None] * np.eye(5)
@@ -61,8 +75,7 @@ def fit_conic_lsq(
         p = np.linalg.solve(ata, atb[..., None])[..., 0]  # (K, 5)
         conic = np.stack([p[:, 0], p[:, 1], 1.0 - p[:, 0], p[:, 2], p[:, 3], p[:, 4]], axis=-1)
         if it < sampson_iterations:
-            _, qx, qy = conic_value_and_grad(conic[:, None, :], x, y)
-            g2 = qx * qx + qy * qy
+            g2 = gradient_squared(conic, x, y)
             ref = (w * g2).sum(axis=1, keepdims=True) / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
             ref = np.where(np.isfinite(ref) & (ref > 0), ref, 1.0)
             ww = w * (ref / np.maximum(g2, 1e-6 * ref))
@@ -186,12 +199,6 @@ def ransac_ellipse(
     xs = np.where(vs, xs, 0.0)
     ys = np.where(vs, ys, 0.0)
     conics = conic_through_five(xs, ys)  # (K, H, 6)
-    good = vs.all(axis=-1) & is_ellipse(conics)
-    d = np.abs(sampson_distance(conics[:, :, None, :], x[:, None, :], y[:, None, :]))  # (K, H, N)
-    thr = np.broadcast_to(np.asarray(threshold, dtype=float), (k,))[:, None, None]
-    inl = (d < thr) & valid[:, None, :]
-    score = np.where(good, inl.sum(axis=-1), -1)
-    best = np.argmax(score, axis=1)
-    mask = inl[np.arange(k), best]
-    mask[score[np.arange(k), best] < 5] = False
-    return mask
+    thr = np.ascontiguousarray(np.broadcast_to(np.asarray(threshold, dtype=float), (k,)))
+    return best_hypothesis_inliers(conics, vs.all(axis=-1), np.ascontiguousarray(x, dtype=float),
+                                   np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(valid, dtype=bool), thr)

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from tasks.vision.detection.parallel import over_dots
+from tasks.vision.detection.parallel import over_dots, over_ranges
 from tasks.vision.detection.stats import masked_median
 
 N_PARAMS = 10  # cx, cy, a, b, θ, L_in, L_out, s, g_u, g_v
@@ -149,21 +149,29 @@ def dot_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, *, with_jacobian
     return (value, jac) if with_jacobian else value
 
 
-@njit(**_COMPILED)
 def _normal_equations(params, x, y, z, w):
     """Model values (K, M) at the pixels of weight 1 (NaN elsewhere: they are not evaluated), and
     per dot JᵀWJ (K, 10, 10), JᵀWr (K, 10) and the cost Σ w r² (K,), r = model − z; w holds 0/1
-    pixel weights."""
+    pixel weights. The dots are shared among :func:`kernel_threads` threads (each dot's numbers
+    are its own: the same whatever the split)."""
     n_dots, n_px = x.shape
     value = np.empty((n_dots, n_px))
     jtj = np.empty((n_dots, N_PARAMS, N_PARAMS))
     jtr = np.empty((n_dots, N_PARAMS))
     cost = np.zeros(n_dots)
+    over_ranges(lambda lo, hi: _normal_equations_into(params, x, y, z, w, lo, hi, value, jtj, jtr, cost), n_dots)
+    return value, jtj, jtr, cost
+
+
+@njit(**_COMPILED)
+def _normal_equations_into(params, x, y, z, w, lo, hi, value, jtj, jtr, cost):  # pragma: no cover - compiled
+    """:func:`_normal_equations` of dots lo … hi − 1, written into its outputs."""
+    n_px = x.shape[1]
     grad = np.empty(N_PARAMS)
     # one dot's weighted Jacobian and residuals at a time: the products then go to BLAS
     jac_w = np.empty((N_PARAMS, n_px))
     res_w = np.empty(n_px)
-    for k in range(n_dots):
+    for k in range(lo, hi):
         cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv = _unpack(params[k])
         for i in range(n_px):
             if w[k, i] == 0.0:
@@ -178,7 +186,6 @@ def _normal_equations(params, x, y, z, w):
         jtj[k] = jac_w @ jac_w.T
         jtr[k] = jac_w @ res_w
         cost[k] = res_w @ res_w
-    return value, jtj, jtr, cost
 
 
 @njit(**_COMPILED)

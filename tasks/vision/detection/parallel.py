@@ -8,12 +8,17 @@ result. numpy's array loops and the compiled loops (``nogil``) release the GIL, 
 run on separate cores. :func:`resize_area` does the same for the area-averaged copies of the image
 (the coarse search's downsampling, the pass-2 crops of blurry rims), in blocks of rows.
 
-The spreading is off by default (one thread, the caller's) and set by :func:`set_threads`. On the
-2-CPU bench host, idle, two threads gave RRHT no wall time (28.6 ms per full-size image against
-28.2 ms with one) for 30 % more CPU time (``bench/bench_detection.py`` and ``--threads 1``, commit
-5dc2319): per dot the stages are many small array operations, and their Python between them holds
-the GIL. A host with more cores or larger plates may differ: measure with ``--threads N`` there.
-One caller at a time spreads its work; others run theirs whole.
+Two settings. :func:`set_threads` spreads whole stages (:func:`over_dots`); it is off by default
+(one thread, the caller's): on the 2-CPU bench host, idle, two threads gave RRHT no wall time
+(28.6 ms per full-size image against 28.2 ms with one) for 30 % more CPU time
+(``bench/bench_detection.py`` and ``--threads 1``, commit 5dc2319): per dot those stages are many
+small array operations, and their Python between them holds the GIL. :func:`set_kernel_threads`
+spreads the parts whose time is compiled loops, OpenCV or large array operations, all of which
+release the GIL (:func:`over_dots_compiled`, :func:`over_ranges`, :func:`resize_area`: the pixel
+edge fit's normal equations, pass 2's step fits, the area-averaged copies); by default on 2
+threads while the host has a free CPU, else on the caller's (:func:`kernel_threads`;
+docs/detector-comparison.md, "Speed", for what it gains and costs). One caller at a time spreads
+its work; others run theirs whole.
 
 SYNOPSIS
 
@@ -27,6 +32,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from itertools import pairwise
@@ -36,7 +42,8 @@ import numpy as np
 
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
-_state: dict = {"threads": None, "pool": None, "pid": None, "workers": 0}
+_state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0,
+                "load_read": -1e9, "free_core": False}
 _spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
 
 
@@ -51,6 +58,31 @@ def set_threads(n: int | None) -> None:
 def threads() -> int:
     """Threads the detection stages are spread over (:func:`set_threads`; default 1)."""
     return _state["threads"] or 1
+
+
+def set_kernel_threads(n: int | None) -> None:
+    """Share the compiled kernels' dots among ``n`` threads (1: the caller's only); None: the
+    default, :func:`kernel_threads`."""
+    if n is not None and n < 1:
+        raise ValueError(f"threads must be at least 1, got {n}")
+    _state["kernel_threads"] = n
+
+
+def kernel_threads() -> int:
+    """Threads the compiled kernels (which release the GIL) share their dots among
+    (:func:`set_kernel_threads`). Default: 2 while the host is not busy (its 1-minute load average
+    below the number of CPUs this process may run on, read at most once a second; a lone detection
+    with OpenCV's threads keeps it about 1–1.5 on 2 CPUs), else 1: a helper thread that has to wait
+    for a core costs CPU time and gains no wall time (docs/detector-comparison.md, "Speed"). The
+    results are the same either way."""
+    if _state["kernel_threads"]:
+        return _state["kernel_threads"]
+    now = time.monotonic()
+    if now - _state["load_read"] >= 1.0:
+        cpus = len(os.sched_getaffinity(0))
+        _state["free_core"] = cpus >= 2 and os.getloadavg()[0] < cpus
+        _state["load_read"] = now
+    return 2 if _state["free_core"] else 1
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
@@ -88,7 +120,17 @@ def over_dots(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **s
     """``fn(*per_dot, **shared)`` with the per-dot arrays (first axis: the n dots; None passes
     through) cut into chunks run on :func:`threads` threads; fn returns a tuple of arrays whose
     first axis is the chunk's dots, and the chunks' tuples are joined along it."""
-    bounds = chunk_bounds(n, threads())
+    return _over_dots(fn, n, threads(), per_dot, shared)
+
+
+def over_dots_compiled(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **shared) -> tuple:
+    """:func:`over_dots` on :func:`kernel_threads` threads, for a ``fn`` whose time goes to compiled
+    loops and large array operations that release the GIL."""
+    return _over_dots(fn, n, kernel_threads(), per_dot, shared)
+
+
+def _over_dots(fn: Callable[..., tuple], n: int, n_threads: int, per_dot: tuple, shared: dict) -> tuple:
+    bounds = chunk_bounds(n, n_threads)
 
     def run(lo_hi: tuple[int, int]) -> tuple:
         lo, hi = lo_hi
@@ -100,14 +142,23 @@ def over_dots(fn: Callable[..., tuple], n: int, *per_dot: np.ndarray | None, **s
     return tuple(np.concatenate(arrays, axis=0) for arrays in zip(*parts, strict=True))
 
 
+def over_ranges(run: Callable[[int, int], None], n: int) -> None:
+    """``run(lo, hi)`` over contiguous ranges covering 0…n, on :func:`kernel_threads` threads
+    (the first range on the calling thread); ``run`` writes its range's results into arrays it
+    shares with the other ranges. For compiled loops that release the GIL."""
+    bounds = chunk_bounds(n, kernel_threads())
+    if len(bounds) == 1 or _spread(lambda lo_hi: run(*lo_hi), bounds) is None:
+        run(0, n)
+
+
 def resize_area(image: np.ndarray, factor: int) -> np.ndarray:
     """``cv2.resize(image, (W // factor, H // factor), interpolation=cv2.INTER_AREA)`` of an (H, W)
     image. When factor divides H and W, each output row is the mean of its own ``factor`` input
-    rows (OpenCV's integer-scale path), so blocks of rows are resized on :func:`threads` threads
-    and give the same bits."""
+    rows (OpenCV's integer-scale path), so blocks of rows are resized on :func:`kernel_threads`
+    threads (OpenCV releases the GIL) and give the same bits."""
     h, w = image.shape[:2]
     size = (w // factor, h // factor)
-    bounds = chunk_bounds(size[1], threads() if h % factor == 0 and w % factor == 0 else 1)
+    bounds = chunk_bounds(size[1], kernel_threads() if h % factor == 0 and w % factor == 0 else 1)
     out = np.empty((size[1], size[0], *image.shape[2:]), image.dtype)
 
     def run(lo_hi: tuple[int, int]) -> None:

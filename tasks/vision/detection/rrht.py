@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from tasks.vision.detection.conics import ellipse_params, fit_conic_lsq, is_ellipse, sampson_distance
+from tasks.vision.detection.conics import abs_sampson_distance, ellipse_params, fit_conic_lsq, is_ellipse
 from tasks.vision.detection.edges import N_DIRECTIONS, EdgeMap, direction_codes, pixels_where
 
 
@@ -231,12 +231,12 @@ def fit_candidates(dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray, dar
     wts = has.astype(float)
     conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=0)
     # one robust pass: drop points far from the first fit, refit
-    dist = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+    dist = abs_sampson_distance(conic, xn, yn) * scale[:, None]
     conic = fit_conic_lsq(xn, yn, wts * (dist < 1.5), sampson_iterations=1)
     ok = is_ellipse(conic)
     centre, axes, theta = ellipse_params(conic, centres, scale)
     # rim ratio: fraction of ray directions whose rim point lies within 1.5 px of the ellipse
-    dist = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+    dist = abs_sampson_distance(conic, xn, yn) * scale[:, None]
     ratio = ((dist < 1.5) & has).sum(axis=1) / nr
     ratio = np.where(ok, ratio, 0.0)
     return centre, axes, theta, ratio

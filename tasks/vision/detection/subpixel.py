@@ -33,20 +33,21 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit
 
 from tasks.vision.detection.conics import (
+    abs_sampson_distance,
     ellipse_params,
     ellipse_radius_along,
     fit_conic_lsq,
     is_ellipse,
     ransac_ellipse,
     ransac_samples,
-    sampson_distance,
 )
 from tasks.vision.detection.edge_fit import fit_dot_edges
-from tasks.vision.detection.parallel import over_dots, resize_area
+from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
+from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.stats import masked_median
+from tasks.vision.detection.step_kernels import fitted_columns, gauss_newton_step, step_arguments
 
 INTERP = cv2.INTER_LINEAR  # ray sampling (bilinear; cubic was not more accurate on rendered rims)
 
@@ -131,20 +132,9 @@ def sample_profiles(crop: Crop, centres: np.ndarray, angles: np.ndarray, t: np.n
     Also returns the (K, R, T) mask of samples inside the full image.
     """
     k, r, n = t.shape
-    lv = float(crop.level)
-    t = t.astype(np.float32, copy=False)
-    cs = np.cos(angles).astype(np.float32)[None, :, None]
-    sn = np.sin(angles).astype(np.float32)[None, :, None]
-    u0, v0 = crop.origin
-    mx = (centres[:, 0, None, None] - u0).astype(np.float32) + cs * t  # (K, R, T) crop px (full scale)
-    my = (centres[:, 1, None, None] - v0).astype(np.float32) + sn * t
-    h, w = crop.full
-    inside = (mx >= -u0) & (mx <= w - 1 - u0) & (my >= -v0) & (my <= h - 1 - v0)
-    if crop.level > 1:
-        mx = (mx + 0.5) / lv - 0.5
-        my = (my + 0.5) / lv - 0.5
-    mx = mx.reshape(k * r, n)
-    my = my.reshape(k * r, n)
+    mx, my, inside = ray_coordinates(np.ascontiguousarray(centres, dtype=float), np.cos(angles).astype(np.float32),
+                                     np.sin(angles).astype(np.float32), np.ascontiguousarray(t),
+                                     crop.origin, crop.full, crop.level)
     out = np.empty((k * r, n), crop.data.dtype)
     step = 30000  # cv2.remap map height must stay below SHRT_MAX
     for i in range(0, k * r, step):
@@ -164,132 +154,13 @@ def robust_ellipse_fit(x, y, w, origin, scale, iterations: int = 1):
     wts = w.astype(float)
     conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
     for _ in range(iterations):
-        d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+        d = abs_sampson_distance(conic, xn, yn) * scale[:, None]
         mad = masked_median(d, (wts > 0) & np.isfinite(d), default=1.0)
         thr = np.maximum(4.0 * 1.4826 * mad, 0.05)
         wts = w * (d < thr[:, None])
         conic = fit_conic_lsq(xn, yn, wts, sampson_iterations=1)
-    d = np.abs(sampson_distance(conic[:, None, :], xn, yn)) * scale[:, None]
+    d = abs_sampson_distance(conic, xn, yn) * scale[:, None]
     return conic, wts > 0, d
-
-
-def derivative_peaks(prof: np.ndarray, t: np.ndarray, inside: np.ndarray, sign: float, step: np.ndarray):
-    """Pass-1 rim per ray: (t_peak (K, R), peak height (K, R), FWHM of the peak (K, R) px).
-
-    The polarity-signed central difference is maximised along each ray and refined by a parabola.
-    step: (K,) sample spacing px (samples where ``t`` was clipped repeat and are ignored).
-    """
-    k, r, _ = prof.shape
-    dt = t[..., 2:] - t[..., :-2]
-    d = (prof[..., 2:] - prof[..., :-2]) * sign
-    ok = (dt > 1e-6) & inside[..., 2:] & inside[..., :-2]
-    d = np.where(ok, d / np.maximum(dt, 1e-6), -np.inf)  # derivative at samples 1 … T−2
-    j = np.argmax(d, axis=2)
-    kk, rr = np.meshgrid(np.arange(k), np.arange(r), indexing="ij")
-    jc = np.clip(j, 1, d.shape[2] - 2)
-    d0, dm, dp = d[kk, rr, jc], d[kk, rr, jc - 1], d[kk, rr, jc + 1]
-    peak = d[kk, rr, j]
-    with np.errstate(all="ignore"):
-        den = dm - 2 * d0 + dp
-        off = np.where((den < 0) & np.isfinite(den), 0.5 * (dm - dp) / den, 0.0)
-    off = np.clip(off, -0.5, 0.5)
-    step = np.broadcast_to(step[:, None], (k, r))
-    tp = np.where(j == jc, t[kk, rr, jc + 1] + off * step, t[kk, rr, j + 1])
-    fwhm = ((d > 0.5 * peak[..., None]) & np.isfinite(d)).sum(axis=2) * step
-    return tp, peak, fwhm
-
-
-def _phi(z: np.ndarray) -> np.ndarray:
-    """Standard normal CDF, tanh approximation (|error| < 2e-4, odd about 0: no location bias)."""
-    return 0.5 + 0.5 * np.tanh(z * (np.float32(0.7978845608) + np.float32(0.0356774081) * z * z))
-
-
-def solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Solve many small symmetric positive-definite systems: m (n, n, N), v (n, N) → (n, N).
-
-    Gaussian elimination written over the batch axis (no pivoting needed for SPD matrices):
-    a few dozen vector operations instead of one LAPACK call per system.
-    """
-    n = m.shape[0]
-    a = m.copy()
-    b = v.copy()
-    for i in range(n):
-        piv = np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
-        for j in range(i + 1, n):
-            f = a[j, i] / piv
-            a[j, i:] -= f * a[i, i:]
-            b[j] -= f * b[i]
-    x = np.empty_like(b)
-    for i in range(n - 1, -1, -1):
-        acc = b[i].copy()
-        for j in range(i + 1, n):
-            acc -= a[i, j] * x[j]
-        x[i] = acc / np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
-    return x
-
-
-@njit(cache=True, nogil=True)
-def _step_normal_equations(y, dt, z, phi, dens, a, b, m, inv_s, npar, free_slope):  # pragma: no cover - compiled
-    """JᵀJ (P, P, N) and Jᵀr (P, N) of the blurred-step model of :func:`step_fit` for N rays of T
-    samples (arrays (T, N) float32: grey levels, t − t_e, (t − t_e)/s, Φ, φ; (N,) float32: a, b, m,
-    1/s): the Jacobian columns ∂/∂(t_e, a, b, log s) (the first P − 1 of them with ``free_slope``,
-    then ∂/∂m), summed in float32 over the samples in order, one ray at a time."""
-    n_t, n = y.shape
-    one = np.float32(1.0)
-    zero = np.float32(0.0)
-    used = np.empty(npar, np.int64)  # which of the five columns (t_e, a, b, log s, m) are fitted
-    for p in range(npar):
-        used[p] = p
-    if free_slope:
-        used[npar - 1] = 4
-    jtj = np.empty((npar, npar, n))
-    jtr = np.empty((npar, n))
-    sj = np.empty((5, 5), np.float32)
-    sr = np.empty(5, np.float32)
-    for k in range(n):
-        c = b[k] - a[k]
-        s00 = s01 = s02 = s03 = s04 = s11 = s12 = s13 = s14 = zero
-        s22 = s23 = s24 = s33 = s34 = s44 = r0 = r1 = r2 = r3 = r4 = zero
-        for i in range(n_t):
-            ph, de, d = phi[i, k], dens[i, k], dt[i, k]
-            mdt = m[k] * d
-            r = y[i, k] - ((a[k] + c * ph) + mdt * (one - ph))
-            cd = c * de - mdt * de
-            c0 = (-cd) * inv_s[k] - m[k] * (one - ph)
-            c1 = one - ph
-            c2 = ph
-            c3 = (-cd) * z[i, k]
-            c4 = d * (one - ph)
-            r0 += c0 * r
-            r1 += c1 * r
-            r2 += c2 * r
-            r3 += c3 * r
-            r4 += c4 * r
-            s00 += c0 * c0
-            s01 += c0 * c1
-            s02 += c0 * c2
-            s03 += c0 * c3
-            s04 += c0 * c4
-            s11 += c1 * c1
-            s12 += c1 * c2
-            s13 += c1 * c3
-            s14 += c1 * c4
-            s22 += c2 * c2
-            s23 += c2 * c3
-            s24 += c2 * c4
-            s33 += c3 * c3
-            s34 += c3 * c4
-            s44 += c4 * c4
-        sr[0], sr[1], sr[2], sr[3], sr[4] = r0, r1, r2, r3, r4
-        sj[0, 0], sj[0, 1], sj[0, 2], sj[0, 3], sj[0, 4] = s00, s01, s02, s03, s04
-        sj[1, 1], sj[1, 2], sj[1, 3], sj[1, 4] = s11, s12, s13, s14
-        sj[2, 2], sj[2, 3], sj[2, 4] = s22, s23, s24
-        sj[3, 3], sj[3, 4], sj[4, 4] = s33, s34, s44
-        for p in range(npar):
-            jtr[p, k] = sr[used[p]]
-            for q in range(p, npar):
-                jtj[p, q, k] = jtj[q, p, k] = sj[used[p], used[q]]
-    return jtj, jtr
 
 
 def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.ndarray | None = None,
@@ -298,8 +169,9 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
 
     prof, t: (K, R, T) grey levels and their distances along each ray; t0, i_in, i_out: (K, R)
     starting values; sigma0: (K,) starting blur (px). Gauss–Newton on (t_e, a, b, log s), or on
-    (t_e, a, b) with s = ``fixed_sigma`` (K, R), all rays at once (arrays laid out (T, K·R) so
-    that every sum over a profile is a fast leading-axis reduction). Unlike the area locator,
+    (t_e, a, b) with s = ``fixed_sigma`` (K, R), all rays at once (arrays laid out (T, K·R); each
+    iteration is two compiled loops over rows of rays, :mod:`tasks.vision.detection.step_kernels`,
+    around numpy's float32 tanh and exp). Unlike the area locator,
     which weights every sample of the window equally, this weights samples by how much they tell
     about the edge position, so the noise of the flat parts of the window hardly enters t_e.
     slope: (K, R) a slope m of the dot's level towards the rim (grey levels / px), the model then
@@ -320,27 +192,16 @@ def step_fit(prof, t, t0, i_in, i_out, sigma0, iterations: int, fixed_sigma: np.
         ls = np.broadcast_to(np.log(np.maximum(sigma0, 0.3))[:, None], shape).reshape(-1).astype(f32)
     else:
         ls = np.log(np.maximum(fixed_sigma, 0.3)).reshape(-1).astype(f32)
-    n_base = 4 if fixed_sigma is None else 3
-    npar = n_base + int(free_slope)
     m = np.zeros_like(te) if slope is None else slope.reshape(-1).astype(f32)
+    columns = fitted_columns(fixed_sigma is None, free_slope)
+    dt, z, tanh_z, gauss_z = (np.empty(y.shape, f32) for _ in range(4))
     for _ in range(iterations):
         s = np.exp(ls)
         inv_s = f32(1.0) / s
-        dt = tt - te
-        z = dt * inv_s
-        phi = _phi(z)
-        dens = np.exp(f32(-0.5) * z * z) * f32(0.3989422804014327)
-        jtj, jtr = _step_normal_equations(y, dt, z, phi, dens, a, b, m, inv_s, npar, free_slope)
-        jtj[range(npar), range(npar)] += 1e-9
-        step = solve_spd(jtj, jtr)
-        lim = np.maximum(1.0, s)  # at most one blur width (or 1 px) per step
-        step[0] = np.clip(step[0], -lim, lim)
-        step = np.nan_to_num(step).astype(f32)
-        te, a, b = te + step[0], a + step[1], b + step[2]
-        if fixed_sigma is None:
-            ls = ls + np.clip(step[3], -0.7, 0.7)
-        if free_slope:
-            m = m + step[npar - 1]
+        step_arguments(tt, te, inv_s, dt, z, tanh_z, gauss_z)
+        np.tanh(tanh_z, out=tanh_z)
+        np.exp(gauss_z, out=gauss_z)
+        gauss_newton_step(y, dt, z, tanh_z, gauss_z, a, b, m, te, ls, s, inv_s, columns)
     te = te.astype(float).reshape(shape)
     s = np.exp(ls.astype(float)).reshape(shape)
     good = np.isfinite(te) & np.isfinite(s) & (np.abs(te - t0) < 3.0 * np.maximum(sigma0[:, None], 1.0))
@@ -454,10 +315,8 @@ def fit_gain_field(prof: np.ndarray, t: np.ndarray, ok: np.ndarray, cen: np.ndar
 def flatten_profiles(prof: np.ndarray, t: np.ndarray, cen: np.ndarray, ang: np.ndarray,
                      gain: GainField) -> np.ndarray:
     """Profiles (K, R, T) divided by the gain relative to each dot centre, 1 + ∇g/g·(p − c)."""
-    g = gain.gradient(cen)  # (K, 2) 1/px
-    rel = 1.0 + t * (g[:, 0, None, None] * np.cos(ang)[None, :, None]
-                     + g[:, 1, None, None] * np.sin(ang)[None, :, None])
-    return prof / np.clip(rel, 0.5, 2.0).astype(np.float32)
+    return flatten(np.ascontiguousarray(prof, dtype=np.float32), np.ascontiguousarray(t, dtype=float),
+                   np.ascontiguousarray(gain.gradient(cen)), np.cos(ang), np.sin(ang))
 
 
 def curvature_correction(s2: np.ndarray, ang: np.ndarray, axes: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -492,7 +351,8 @@ def _pass1_profiles(crop, centres, axes, theta, out_lim, coarse_factor, p):
 def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p):
     """Robust rim ellipses and blur σ per dot (see module docstring) from the pass-1 rays
     (:func:`_pass1_profiles`); samples: (K, H, 5) RANSAC draws (:func:`ransac_samples`)."""
-    tp, peak, fwhm = derivative_peaks(prof, t, inside, sign, 2.0 * band / (p.pass1_samples - 1))
+    tp, peak, fwhm = derivative_peaks(np.ascontiguousarray(prof), np.ascontiguousarray(t), np.ascontiguousarray(inside),
+                                      sign, 2.0 * band / (p.pass1_samples - 1))
     good = np.isfinite(peak) & (peak > 0)
     med_peak = masked_median(peak, good, default=np.inf)
     valid = good & (peak > 0.3 * med_peak[:, None])
@@ -512,7 +372,7 @@ def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p
     return c1, ax1, th1, sigma
 
 
-def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, free_slope: bool):
+def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, *, ang, p, free_slope: bool):
     """The two step fits of pass 2 (σ free, then σ from the per-dot blur model), optionally with a
     sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable) (K, R)."""
     te, s, conv, lev_in, lev_out, _ = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations,
@@ -583,13 +443,14 @@ def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang
     g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
     dts = (2 * half_w / (n2 - 1))[:, None]
     te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
-    te, conv, s, s2, usable = _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, ang, p, False)
+    te, conv, s, s2, usable = over_dots_compiled(_step_fits, len(te), prof, t, te, i_in, i_out, sigma, contrast, med_c,
+                                                 inside, ang=ang, p=p, free_slope=False)
     if p.inner_slope:  # dots darker on one side: refit them with a sloped inside, which would move t_e
         shaded = shading(prof, t, te, np.sqrt(s2), usable, ang, med_c, axs[:, 1]) > p.min_shading
         if shaded.any():
             k = np.flatnonzero(shaded)
             fits = _step_fits(prof[k], t[k], te[k], i_in[k], i_out[k], sigma[k], contrast[k], med_c[k], inside[k],
-                              ang, p, True)
+                              ang=ang, p=p, free_slope=True)
             for full, part in zip((te, conv, s, s2, usable), fits, strict=True):
                 full[k] = part
     valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])

@@ -1,0 +1,218 @@
+"""The compiled loops of the sub-pixel stage give the numpy forms' results to every bit.
+
+tasks/vision/detection/step_kernels.py, conic_kernels.py and ray_kernels.py replace numpy array
+expressions by loops that do the same floating-point operations in the same order; each test runs
+the numpy form (written out here as the reference) and the compiled one on random inputs shaped
+like a plate's rays and compares the bytes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from tasks.vision.detection import conics, step_kernels, subpixel
+from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
+
+
+def _solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Gaussian elimination over the batch axis: m (n, n, N), v (n, N)."""
+    n = m.shape[0]
+    a, b = m.copy(), v.copy()
+    for i in range(n):
+        piv = np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
+        for j in range(i + 1, n):
+            f = a[j, i] / piv
+            a[j, i:] -= f * a[i, i:]
+            b[j] -= f * b[i]
+    x = np.empty_like(b)
+    for i in range(n - 1, -1, -1):
+        acc = b[i].copy()
+        for j in range(i + 1, n):
+            acc -= a[i, j] * x[j]
+        x[i] = acc / np.where(np.abs(a[i, i]) > 1e-12, a[i, i], 1e-12)
+    return x
+
+
+def _gauss_newton_reference(y, tt, te, a, b, m, ls, free_sigma: bool, free_slope: bool):
+    """One iteration of the blurred-step fit as numpy array expressions (returns te, a, b, ls, m)."""
+    f32 = np.float32
+    s = np.exp(ls)
+    inv_s = f32(1.0) / s
+    dt = tt - te
+    z = dt * inv_s
+    phi = 0.5 + 0.5 * np.tanh(z * (f32(0.7978845608) + f32(0.0356774081) * z * z))
+    dens = np.exp(f32(-0.5) * z * z) * f32(0.3989422804014327)
+    c = b - a
+    mdt = m * dt
+    r = y - ((a + c * phi) + mdt * (1 - phi))
+    cd = c * dens - mdt * dens
+    cols = [(-cd) * inv_s - m * (1 - phi), 1 - phi, phi, (-cd) * z, dt * (1 - phi)]
+    used = [0, 1, 2] + ([3] if free_sigma else []) + ([4] if free_slope else [])
+    n = len(used)
+    jtj = np.empty((n, n, y.shape[1]))
+    jtr = np.empty((n, y.shape[1]))
+    for p, cp in enumerate(used):
+        jtr[p] = np.cumsum(cols[cp] * r, axis=0, dtype=f32)[-1]  # float32 sums in sample order
+        for q in range(p, n):
+            jtj[p, q] = jtj[q, p] = np.cumsum(cols[cp] * cols[used[q]], axis=0, dtype=f32)[-1]
+        jtj[p, p] += 1e-9
+    step = _solve_spd(jtj, jtr)
+    lim = np.maximum(1.0, s)
+    step[0] = np.clip(step[0], -lim, lim)
+    step = np.nan_to_num(step).astype(f32)
+    te, a, b = te + step[0], a + step[1], b + step[2]
+    if free_sigma:
+        ls = ls + np.clip(step[3], -0.7, 0.7)
+    if free_slope:
+        m = m + step[n - 1]
+    return te, a, b, ls, m
+
+
+@pytest.mark.parametrize("free_sigma", [True, False])
+@pytest.mark.parametrize("free_slope", [False, True])
+def test_gauss_newton_step_is_the_numpy_iteration_to_every_bit(free_sigma, free_slope):
+    rng = np.random.default_rng(7 + 2 * free_sigma + free_slope)
+    n_t, n = 14, 700  # samples per ray, rays (several of the compiled loops' vector widths and a tail)
+    f32 = np.float32
+    te0 = rng.uniform(-1.0, 1.0, n).astype(f32)
+    tt = np.linspace(-6.0, 6.0, n_t).astype(f32)[:, None] + rng.uniform(-0.2, 0.2, (1, n)).astype(f32)
+    sig = rng.uniform(0.5, 3.0, n).astype(f32)
+    truth = 40 + 160 / (1 + np.exp(-(tt - te0) / sig))
+    y = (truth + rng.normal(0, 3, truth.shape)).astype(f32)
+    a, b = rng.uniform(30, 50, n).astype(f32), rng.uniform(190, 210, n).astype(f32)
+    m = rng.uniform(-0.05, 0.05, n).astype(f32) if free_slope else np.zeros(n, f32)
+    ls = np.log(sig * rng.uniform(0.7, 1.4, n)).astype(f32)
+    te = np.zeros(n, f32)
+    want = _gauss_newton_reference(y, tt, te, a, b, m, ls, free_sigma, free_slope)
+    got = [v.copy() for v in (te, a, b, ls, m)]
+    s = np.exp(got[3])
+    inv_s = f32(1.0) / s
+    dt, z, tanh_z, gauss_z = (np.empty(y.shape, f32) for _ in range(4))
+    step_kernels.step_arguments(tt, got[0], inv_s, dt, z, tanh_z, gauss_z)
+    np.tanh(tanh_z, out=tanh_z)
+    np.exp(gauss_z, out=gauss_z)
+    step_kernels.gauss_newton_step(y, dt, z, tanh_z, gauss_z, got[1], got[2], got[4], got[0], got[3], s, inv_s,
+                                   step_kernels.fitted_columns(free_sigma, free_slope))
+    for name, w, g in zip(("t_e", "a", "b", "log s", "m"), want, got, strict=True):
+        assert w.dtype == g.dtype and w.tobytes() == g.tobytes(), name
+
+
+def test_step_fit_finds_blurred_rims():
+    rng = np.random.default_rng(3)
+    k, r, n_t = 3, 40, 16
+    t = np.broadcast_to(np.linspace(-6.0, 6.0, n_t), (k, r, n_t)).copy()
+    te0 = rng.uniform(-1.0, 1.0, (k, r))
+    prof = (50 + 150 * ndtr((t - te0[..., None]) / 1.7)).astype(np.float32)  # a step blurred by σ 1.7 px
+    te, _, good, lev_in, _, _ = subpixel.step_fit(prof, t, np.zeros((k, r)), prof[..., 0], prof[..., -1],
+                                                  np.full(k, 1.0), 6)
+    assert good.all() and np.abs(te - te0).max() < 0.01 and np.abs(lev_in - 50).max() < 0.5
+
+
+def test_sampson_distances_and_ransac_are_the_numpy_forms_to_every_bit():
+    rng = np.random.default_rng(11)
+    k, n = 49, 64
+    ang = np.arange(n) * (2 * np.pi / n)
+    x = rng.uniform(0.8, 1.0, (k, 1)) * np.cos(ang) + rng.normal(0, 0.01, (k, n))
+    y = rng.uniform(0.5, 0.8, (k, 1)) * np.sin(ang) + rng.normal(0, 0.01, (k, n))
+    x[:, ::9] += 0.2  # outliers
+    valid = rng.random((k, n)) > 0.1
+    conic = conics.fit_conic_lsq(x, y, valid.astype(float), sampson_iterations=1)
+    want = np.abs(conics.sampson_distance(conic[:, None, :], x, y))
+    assert want.tobytes() == conics.abs_sampson_distance(conic, x, y).tobytes()
+    samples = conics.ransac_samples(k, n, 16, rng)
+    thr = np.full(k, 0.02)
+    kk = np.arange(k)[:, None, None]  # the numpy form of ransac_ellipse
+    xs, ys, vs = x[kk, samples], y[kk, samples], valid[kk, samples]
+    xs, ys = np.where(vs, xs, 0.0), np.where(vs, ys, 0.0)
+    d5 = np.stack([xs * xs, xs * ys, ys * ys, xs, ys], axis=-1)
+    ok = np.abs(np.linalg.det(d5)) > 1e-12
+    p = np.linalg.solve(np.where(ok[..., None, None], d5, np.eye(5)), np.ones((*xs.shape, 1)))[..., 0]
+    hyp = np.concatenate([p, -np.ones((k, 16, 1))], axis=-1)
+    hyp = np.where(ok[..., None], hyp / np.linalg.norm(hyp, axis=-1, keepdims=True), np.nan)
+    good = vs.all(axis=-1) & conics.is_ellipse(hyp)
+    inl = (np.abs(conics.sampson_distance(hyp[:, :, None, :], x[:, None, :], y[:, None, :])) < thr[:, None, None]) \
+        & valid[:, None, :]
+    score = np.where(good, inl.sum(axis=-1), -1)
+    best = np.argmax(score, axis=1)
+    mask = inl[np.arange(k), best] & (score[np.arange(k), best] >= 5)[:, None]
+    got = conics.ransac_ellipse(x, y, valid, thr, samples)
+    assert np.array_equal(got, mask)
+    clean = valid.copy()
+    clean[:, ::9] = False
+    assert (got & clean).sum() > 0.85 * clean.sum() and (got[:, ::9]).mean() < 0.5  # most outliers are left out
+
+
+def test_conic_least_squares_is_the_numpy_form_to_every_bit():
+    rng = np.random.default_rng(5)
+    k, n = 30, 50
+    ang = rng.uniform(0, 2 * np.pi, (k, n))
+    x, y = 0.9 * np.cos(ang) + rng.normal(0, 0.01, (k, n)), 0.6 * np.sin(ang) + rng.normal(0, 0.01, (k, n))
+    w = (rng.random((k, n)) > 0.2).astype(float)
+    w[0, 4:] = 0.0  # too few points: NaN
+    m = np.stack([x * x - y * y, x * y, x, y, np.ones_like(x)], axis=-1)
+    ww, want = w.copy(), None
+    for _ in range(3):
+        mtw = np.swapaxes(m * ww[..., None], 1, 2)
+        ata = np.matmul(mtw, m)
+        ata = ata + 1e-12 * np.trace(ata, axis1=1, axis2=2)[:, None, None] * np.eye(5)
+        ata[0] = np.eye(5)
+        p = np.linalg.solve(ata, np.matmul(mtw, -(y * y)[..., None]))[..., 0]
+        want = np.stack([p[:, 0], p[:, 1], 1.0 - p[:, 0], p[:, 2], p[:, 3], p[:, 4]], axis=-1)
+        _, qx, qy = conics.conic_value_and_grad(want[:, None, :], x, y)
+        g2 = qx * qx + qy * qy
+        ref = (w * g2).sum(axis=1, keepdims=True) / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
+        ww = w * (ref / np.maximum(g2, 1e-6 * ref))
+    want[0] = np.nan
+    got = conics.fit_conic_lsq(x, y, w, sampson_iterations=2)
+    assert got.tobytes() == want.tobytes()
+    _, axes, _ = conics.ellipse_params(got[1:], np.zeros((k - 1, 2)), np.ones(k - 1))
+    assert np.allclose(axes, [0.9, 0.6], atol=0.01)
+
+
+def test_ray_coordinates_derivative_peaks_and_flattening_are_the_numpy_forms_to_every_bit():
+    rng = np.random.default_rng(2)
+    k, r, n_t = 7, 32, 28
+    centres = rng.uniform(30, 200, (k, 2))
+    ang = np.arange(r) * (2 * np.pi / r)
+    t = np.clip(rng.uniform(5, 40, (k, r, 1)) + np.linspace(-8, 8, n_t), 6.0, 44.0)  # clipped: repeated samples
+    cs, sn = np.cos(ang).astype(np.float32), np.sin(ang).astype(np.float32)
+    for level in (1, 3):
+        origin, full = (11, 23), (240, 250)
+        t32 = t.astype(np.float32)
+        mx = (centres[:, 0, None, None] - origin[0]).astype(np.float32) + cs[None, :, None] * t32
+        my = (centres[:, 1, None, None] - origin[1]).astype(np.float32) + sn[None, :, None] * t32
+        inside = ((mx >= -origin[0]) & (mx <= full[1] - 1 - origin[0])
+                  & (my >= -origin[1]) & (my <= full[0] - 1 - origin[1]))
+        if level > 1:
+            mx, my = (mx + 0.5) / float(level) - 0.5, (my + 0.5) / float(level) - 0.5
+        got = ray_coordinates(centres, cs, sn, t, origin, full, level)
+        assert got[0].tobytes() == mx.reshape(k * r, n_t).tobytes()
+        assert got[1].tobytes() == my.reshape(k * r, n_t).tobytes()
+        assert np.array_equal(got[2], inside) and 0 < inside.sum() < inside.size
+    prof = rng.integers(0, 256, (k, r, n_t)).astype(np.float32)  # whole grey levels: ties in the peaks
+    step = rng.uniform(0.3, 1.0, k)
+    for sign in (1.0, -1.0):
+        dt = t[..., 2:] - t[..., :-2]
+        d = (prof[..., 2:] - prof[..., :-2]) * sign
+        d = np.where((dt > 1e-6) & inside[..., 2:] & inside[..., :-2], d / np.maximum(dt, 1e-6), -np.inf)
+        j = np.argmax(d, axis=2)
+        kk, rr = np.meshgrid(np.arange(k), np.arange(r), indexing="ij")
+        jc = np.clip(j, 1, d.shape[2] - 2)
+        d0, dm, dp = d[kk, rr, jc], d[kk, rr, jc - 1], d[kk, rr, jc + 1]
+        peak = d[kk, rr, j]
+        with np.errstate(all="ignore"):
+            den = dm - 2 * d0 + dp
+            off = np.clip(np.where((den < 0) & np.isfinite(den), 0.5 * (dm - dp) / den, 0.0), -0.5, 0.5)
+        st = np.broadcast_to(step[:, None], (k, r))
+        tp = np.where(j == jc, t[kk, rr, jc + 1] + off * st, t[kk, rr, j + 1])
+        fwhm = ((d > 0.5 * peak[..., None]) & np.isfinite(d)).sum(axis=2) * st
+        got = derivative_peaks(prof, t, inside, sign, step)
+        for name, w, g in zip(("t", "peak", "fwhm"), (tp, peak, fwhm), got, strict=True):
+            assert w.tobytes() == g.tobytes(), (name, sign)
+    grad = rng.normal(0, 3e-3, (k, 2))
+    rel = 1.0 + t * (grad[:, 0, None, None] * np.cos(ang)[None, :, None]
+                     + grad[:, 1, None, None] * np.sin(ang)[None, :, None])
+    want = prof / np.clip(rel, 0.5, 2.0).astype(np.float32)
+    assert want.tobytes() == flatten(prof, t, grad, np.cos(ang), np.sin(ang)).tobytes()

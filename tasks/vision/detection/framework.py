@@ -45,7 +45,7 @@ from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to
 from tasks.vision.detection.result import GridDetection
 from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
 from tasks.vision.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
-from tasks.vision.detection.verify import dot_fill
+from tasks.vision.detection.verify import dot_appearance
 
 
 @dataclass
@@ -198,44 +198,47 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
         circles = rrht_circles(em, edges, plate.dark_dots, r_min, r_max, p.rrht, seed=p.seed, timings=tm)
     prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
 
-    def verified(c: CoarseCircles) -> CoarseCircles:
-        fill_in, fill_out = dot_fill(pre, c.centres, c.axes, c.theta, plate.dark_dots)
-        return c.subset((fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside))
+    def verified(c: CoarseCircles) -> tuple[CoarseCircles, np.ndarray]:  # and their grey levels (K, 2)
+        fill_in, fill_out, levels = dot_appearance(pre, c.centres, c.axes, c.theta, plate.dark_dots)
+        keep = (fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside)
+        return c.subset(keep), levels[keep]
 
-    def ordered(c: CoarseCircles) -> CoarseAttempt:
+    def ordered(c: CoarseCircles, levels: np.ndarray) -> CoarseAttempt:
         if len(c) < 4:
             return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
                                                   "dot grid")
         t3 = time.perf_counter()
         order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
-                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
+                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior,
+                           levels=levels)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
         return CoarseAttempt(factor, c, order, order.reason)
 
-    circles = verified(circles)
-    attempt = ordered(circles)
+    circles, levels = verified(circles)
+    attempt = ordered(circles, levels)
     if attempt.ok or not p.contour_fallback:
         return attempt
     t4 = time.perf_counter()
-    blobs = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
-    merged = merge_candidates(circles, blobs)
+    blobs, blob_levels = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
+    merged, added = merge_candidates(circles, blobs)
     tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t4
     if len(merged) == len(circles):
         return attempt
-    retry = ordered(merged)
+    retry = ordered(merged, np.concatenate([levels, blob_levels[added]]))
     return retry if retry.ok or retry.score >= attempt.score else attempt
 
 
-def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> CoarseCircles:
-    """``first`` and the circles of ``more`` that are not within half a minor axis of one of them."""
+def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> tuple[CoarseCircles, np.ndarray]:
+    """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
+    (len(more),) bool: which of ``more`` were added, after ``first``)."""
     if len(first) == 0 or len(more) == 0:
-        return more if len(first) == 0 else first
+        return (more, np.ones(len(more), bool)) if len(first) == 0 else (first, np.zeros(len(more), bool))
     d = np.linalg.norm(more.centres[:, None, :] - first.centres[None, :, :], axis=2)
     new = (d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])).all(axis=1)
     add = more.subset(new)
     return CoarseCircles(np.concatenate([first.centres, add.centres]), np.concatenate([first.axes, add.axes]),
                          np.concatenate([first.theta, add.theta]), np.concatenate([first.votes, add.votes]),
-                         np.concatenate([first.rim_ratio, add.rim_ratio]))
+                         np.concatenate([first.rim_ratio, add.rim_ratio])), new
 
 
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,

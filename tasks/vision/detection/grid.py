@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 
 from tasks.machine.plate import DotPlate
 from tasks.vision.detection.grid_order import GridOrder, fail_order, lattice_steps, rotation_deg
-from tasks.vision.detection.lattice_check import check_window
+from tasks.vision.detection.lattice_check import check_window, plate_like_strays
 from tasks.vision.detection.partial_view import order_by_prior
 
 __all__ = ["GridOrder", "build_lattice", "order_grid", "reduce_lattice"]
@@ -264,7 +264,7 @@ def _dihedral(rows: int, cols: int, h: int, w: int):
 def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None = None,
                image_shape: tuple[int, int] | None = None, expected_rotation_deg: float | None = None,
                mirrored: bool = False, lattice: tuple[np.ndarray, np.ndarray] | None = None,
-               expected_centres: np.ndarray | None = None) -> GridOrder:
+               expected_centres: np.ndarray | None = None, levels: np.ndarray | None = None) -> GridOrder:
     """Assign detected points (N, 2) px to the plate's dots.
 
     sizes: (N,) dot diameters in px (major axis), used to bound neighbour spacing and reject
@@ -274,6 +274,9 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     expected_centres: (rows*cols, 2) px, where the dots should be (same frame as ``points``); with
     ``image_shape``, a lattice without a complete window is then ordered as a partial view
     (:func:`tasks.vision.detection.partial_view.order_by_prior`: ``index`` is −1 for the dots not found).
+    levels: (N, 2) grey inside each point's dot and on the ring around it; with ``sizes``, the
+    lattice points beyond a complete window that do not continue the window's lattice, size and
+    levels are clutter and do not count as extra dots (:func:`tasks.vision.detection.lattice_check.plate_like_strays`).
     """
     rows, cols = plate.rows, plate.cols
     need = rows * cols
@@ -324,7 +327,11 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
                                  f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww))
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
-    if strays >= max(2, (min(rows, cols) + 1) // 2):
+    limit = max(2, (min(rows, cols) + 1) // 2)
+    if strays >= limit and levels is not None and sizes is not None:
+        like = plate_like_strays(points, sizes, levels, occ, windows[0]).sum()
+        strays = strays if like >= limit else 0
+    if strays >= limit:
         return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
                                  f"window ({shape_txt} lattice)", (hh, ww))
     win, irregular = check_window(points, sizes, occ[a0 : a0 + h, b0 : b0 + w])

@@ -38,7 +38,7 @@ from tasks.vision.detection.blobs import contour_candidates
 from tasks.vision.detection.chaincode import filter_edges
 from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.grid import order_grid
-from tasks.vision.detection.grid_order import GridOrder
+from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder
 from tasks.vision.detection.partial_view import too_few_dots
 from tasks.vision.detection.perspective import correct_bias, correct_bias_local, fit_homography, project
 from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
@@ -229,12 +229,18 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
 
 
 def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> tuple[CoarseCircles, np.ndarray]:
-    """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
-    (len(more),) bool: which of ``more`` were added, after ``first``)."""
+    """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them of a
+    similar size, (len(more),) bool: which of ``more`` were added, after ``first``).
+
+    A region and a circle at one place whose sizes differ beyond :data:`SIMILAR_SIZE` are both kept:
+    on a strongly blurred dot the Hough circle can lock on to a ring inside it (the lattice then takes
+    the one that fits its neighbours)."""
     if len(first) == 0 or len(more) == 0:
         return (more, np.ones(len(more), bool)) if len(first) == 0 else (first, np.zeros(len(more), bool))
     d = np.linalg.norm(more.centres[:, None, :] - first.centres[None, :, :], axis=2)
-    new = (d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])).all(axis=1)
+    ratio = more.axes[:, 0, None] / first.axes[None, :, 0]
+    similar = (ratio < SIMILAR_SIZE) & (ratio > 1.0 / SIMILAR_SIZE)
+    new = ((d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])) | ~similar).all(axis=1)
     add = more.subset(new)
     return CoarseCircles(np.concatenate([first.centres, add.centres]), np.concatenate([first.axes, add.axes]),
                          np.concatenate([first.theta, add.theta]), np.concatenate([first.votes, add.votes]),

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.machine.plate import DotPlate
-from tasks.vision.detection.grid_order import GridOrder, fail_order, lattice_steps, rotation_deg
+from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder, fail_order, lattice_steps, rotation_deg
 from tasks.vision.detection.lattice_check import check_window, plate_like_strays
 from tasks.vision.detection.partial_view import order_by_prior
 
@@ -76,7 +76,7 @@ def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: f
     if sizes is not None:
         ratio_lo, ratio_hi = np.broadcast_to(np.asarray(spacing_ratio, dtype=float), (2,))
         lo, hi = 0.5 * ratio_lo * sizes, 1.35 * ratio_hi * sizes  # (N,)
-        size_ok = (sizes[idx] < 1.45 * sizes[:, None]) & (sizes[idx] > sizes[:, None] / 1.45)
+        size_ok = (sizes[idx] < SIMILAR_SIZE * sizes[:, None]) & (sizes[idx] > sizes[:, None] / SIMILAR_SIZE)
     else:
         med = np.median(dist[:, 0])
         lo, hi = np.full(n, 0.6 * med), np.full(n, 1.6 * med)
@@ -163,7 +163,7 @@ def _grow(points, tree, seed, steps, has, sizes, second_order: bool = False):
             ok = np.isfinite(d) & (d <= 0.3 * np.linalg.norm(step, axis=1))
             j = np.where(ok, j, 0)
             if sizes is not None:
-                ok &= (sizes[j] > sizes[f] / 1.45) & (sizes[j] < sizes[f] * 1.45)
+                ok &= (sizes[j] > sizes[f] / SIMILAR_SIZE) & (sizes[j] < sizes[f] * SIMILAR_SIZE)
             return ok & ~assigned[j], j
 
         ok, j = claims(step)

@@ -11,6 +11,10 @@ import numpy as np
 
 from tasks.machine.plate import DotPlate
 
+SIMILAR_SIZE = 1.45
+"""Two dots of one plate differ in size (major axis) by less than this factor where the lattice links
+them: neighbours in growth, a dot and its replacement in the window check."""
+
 
 @dataclass
 class GridOrder:

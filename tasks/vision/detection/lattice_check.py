@@ -27,6 +27,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tasks.vision.detection.grid_order import SIMILAR_SIZE
+
 MAX_CELL_MISFIT = 0.35
 """Largest mixed second difference of a 2 × 2 cell, as a fraction of its mean side, for a window to
 be accepted."""
@@ -70,8 +72,8 @@ def check_window(points: np.ndarray, sizes: np.ndarray | None, window: np.ndarra
                  max_cell_misfit: float = MAX_CELL_MISFIT) -> tuple[np.ndarray, str]:
     """(window, reason): ``window`` (h, w) indices into ``points`` (N, 2) px, with dots replaced by
     better-fitting candidates (step 1 of the module docstring; ``sizes`` (N,) px bound how
-    similar a replacement must be, within 1.45×); reason is "" when every cell closes (step 2),
-    else why the window is refused."""
+    similar a replacement must be, within ``SIMILAR_SIZE``); reason is "" when every cell closes
+    (step 2), else why the window is refused."""
     window = window.copy()
     h, w = window.shape
     if h < 2 or w < 2:
@@ -91,7 +93,8 @@ def check_window(points: np.ndarray, sizes: np.ndarray | None, window: np.ndarra
             for d, k in zip(np.atleast_1d(dist), np.atleast_1d(near), strict=True):
                 if d > off[i, j] / SWAP_MARGIN or k in taken:
                     continue
-                if sizes is not None and not (sizes[window[i, j]] / 1.45 < sizes[k] < sizes[window[i, j]] * 1.45):
+                own = None if sizes is None else sizes[window[i, j]]
+                if own is not None and not (own / SIMILAR_SIZE < sizes[k] < own * SIMILAR_SIZE):
                     continue
                 trial = window.copy()
                 trial[i, j] = k

@@ -287,6 +287,9 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}
     if not attempt.ok:
+        if order is not None and order.lattice_index is not None:
+            debug["lattice_px"] = coarse_to_full(circles.centres[order.lattice_index], factor)
+            debug["lattice_coords"] = order.lattice_coords
         return fail(attempt.reason, **debug)
     rc = plate.row_col()
     found = order.index >= 0

@@ -201,7 +201,7 @@ def _second_order_steps(points, mn, at, f, axis, sign, step):
     Δ' = p(t−2d) − p(t−3d), when |Δ + Δ − Δ'| is within ×⅔…×1.5 of |Δ| (the direction of growth
     first, then the others); elsewhere ``step`` as given (the carried step)."""
     out = step.copy()
-    dirs = ((1, 0), (-1, 0), (0, 1), (0, -1))
+    dirs = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))
     for i in range(len(f)):
         e = [0, 0]
         e[axis[i]] = sign[i]
@@ -319,12 +319,12 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
                                 | (p[:, 1] < margin) | (p[:, 1] > hi - 1 - margin)).any())
         if near_border:
             return fail_order(plate, f"partial view: plate partly out of the image ({shape_txt} lattice of "
-                                     f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww))
+                                     f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww), (sel, g))
         return fail_order(plate, f"missing dots: {shape_txt} lattice of {found} dots, at most "
-                                 f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww))
+                                 f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww), (sel, g))
     if len(windows) > 1:
         return fail_order(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
-                                 f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww))
+                                 f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww), (sel, g))
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
     limit = max(2, (min(rows, cols) + 1) // 2)
@@ -333,10 +333,10 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
         strays = strays if like >= limit else 0
     if strays >= limit:
         return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
-                                 f"window ({shape_txt} lattice)", (hh, ww))
+                                 f"window ({shape_txt} lattice)", (hh, ww), (sel, g))
     win, irregular = check_window(points, sizes, occ[a0 : a0 + h, b0 : b0 + w])
     if irregular:
-        return fail_order(plate, irregular, (hh, ww))
+        return fail_order(plate, irregular, (hh, ww), (sel, g))
     ab = np.stack(np.meshgrid(np.arange(h), np.arange(w), indexing="ij"), axis=-1).reshape(-1, 2)
     pidx = win.reshape(-1)
     pts = points[pidx]

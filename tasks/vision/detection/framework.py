@@ -225,22 +225,32 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
     if len(merged) == len(circles):
         return attempt
     retry = ordered(merged, np.concatenate([levels, blob_levels[added]]))
-    return retry if retry.ok or retry.score >= attempt.score else attempt
+    best = retry if retry.ok or retry.score >= attempt.score else attempt
+    if best.ok:
+        return best
+    # under a strong blur the Hough circle can lock on to a ring inside a dot, of another size than
+    # the dot's region: with those regions too, the lattice takes the one that fits its neighbours
+    more, also = merge_candidates(merged, blobs.subset(~added), other_sizes=True)
+    if not also.any():
+        return best
+    last = ordered(more, np.concatenate([levels, blob_levels[added], blob_levels[~added][also]]))
+    return last if last.ok or last.score >= best.score else best
 
 
-def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> tuple[CoarseCircles, np.ndarray]:
-    """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them of a
-    similar size, (len(more),) bool: which of ``more`` were added, after ``first``).
-
-    A region and a circle at one place whose sizes differ beyond :data:`SIMILAR_SIZE` are both kept:
-    on a strongly blurred dot the Hough circle can lock on to a ring inside it (the lattice then takes
-    the one that fits its neighbours)."""
+def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
+                     ) -> tuple[CoarseCircles, np.ndarray]:
+    """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
+    (len(more),) bool: which of ``more`` were added, after ``first``). With ``other_sizes``, a circle
+    of ``more`` at the place of one of ``first`` whose size differs beyond :data:`SIMILAR_SIZE` from
+    it is added too."""
     if len(first) == 0 or len(more) == 0:
         return (more, np.ones(len(more), bool)) if len(first) == 0 else (first, np.zeros(len(more), bool))
     d = np.linalg.norm(more.centres[:, None, :] - first.centres[None, :, :], axis=2)
-    ratio = more.axes[:, 0, None] / first.axes[None, :, 0]
-    similar = (ratio < SIMILAR_SIZE) & (ratio > 1.0 / SIMILAR_SIZE)
-    new = ((d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])) | ~similar).all(axis=1)
+    apart = d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])
+    if other_sizes:
+        ratio = more.axes[:, 0, None] / first.axes[None, :, 0]
+        apart |= (ratio >= SIMILAR_SIZE) | (ratio <= 1.0 / SIMILAR_SIZE)
+    new = apart.all(axis=1)
     add = more.subset(new)
     return CoarseCircles(np.concatenate([first.centres, add.centres]), np.concatenate([first.axes, add.axes]),
                          np.concatenate([first.theta, add.theta]), np.concatenate([first.votes, add.votes]),

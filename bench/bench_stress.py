@@ -102,9 +102,10 @@ def random_run(n: int, seed: int, fisheye: bool = False) -> None:
         plate = replace(case.plate, dark_dots=case.dark_dots)
         verdicts = []
         for d in counts:
-            c = run(d, image, plate)
+            det = detect_grid(image, plate, "rrht") if d == "rrht" else None
+            c = run(d, image, plate) if det is None else (det.centres if det.ok else None)
             if c is None:
-                verdict = "refused"
+                verdict = "refused" + (f" ({det.reason})" if det is not None else "")
             elif d == "rrht":
                 e = errors_up_to_symmetry(plate, c, truth)
                 verdict = "found" if e.max() < 0.25 * case.dot_px else "wrong"
@@ -113,7 +114,7 @@ def random_run(n: int, seed: int, fisheye: bool = False) -> None:
                 e = match_errors(c, truth, case.dot_px)
                 verdict = "found" if e is not None else "wrong"
                 errs[d] += [float(np.median(e))] if e is not None else []
-            counts[d][verdict] += 1
+            counts[d][verdict.split()[0]] += 1
             verdicts.append(f"{d} {verdict}")
         print(f"{case.name:11s} {case.width}x{case.height} dot {case.dot_px:5.1f}px tilt {case.tilt_deg:4.1f} "
               f"k1 {case.k1:+.2f} blur {case.defocus_px:.0f} jpeg {case.jpeg:2d} "

@@ -84,13 +84,19 @@ def draw_detection(image: np.ndarray, det: GridDetection, plate: DotPlate, max_s
     return bgr
 
 
+MAX_LATTICE_LABELS = 60
+"""A lattice of more points is drawn without its coordinates (they would cover it)."""
+
+
 def _draw_lattice(bgr: np.ndarray, uv: np.ndarray, coords: np.ndarray, pt, lw: int) -> None:
     """Join the lattice points ``uv`` (L, 2) px whose coordinates ``coords`` (L, 2) are one step apart,
-    and label each with its coordinates (``pt``: image px → drawing px)."""
+    and label each with its coordinates up to :data:`MAX_LATTICE_LABELS` points (``pt``: image px →
+    drawing px)."""
     at = {tuple(c): k for k, c in enumerate(np.asarray(coords).tolist())}
     for (a, b), k in at.items():
         for nb in ((a + 1, b), (a, b + 1)):
             if nb in at:
                 cv2.line(bgr, pt(uv[k]), pt(uv[at[nb]]), LATTICE, lw, cv2.LINE_AA)
-        cv2.putText(bgr, f"{a},{b}", (pt(uv[k])[0] + 3 * lw, pt(uv[k])[1] + 12 * lw), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.35 * lw, LATTICE, lw, cv2.LINE_AA)
+        if len(at) <= MAX_LATTICE_LABELS:
+                cv2.putText(bgr, f"{a},{b}", (pt(uv[k])[0] + 3 * lw, pt(uv[k])[1] + 12 * lw),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.35 * lw, LATTICE, lw, cv2.LINE_AA)

@@ -262,6 +262,11 @@ STRESS_CASES: tuple[StressCase, ...] = (
     StressCase("fisheye-squeezed", 320, 360, 36.7, focal_px=170.0, k1=-0.35, k2=0.1, offset=(0.232, 0.172),
                tilt_deg=32.0, tilt_azimuth_deg=296.2, spin_deg=-115.5, clutter=47, shadow=0.5, colour=True, jpeg=90,
                seed=93073361),
+    # near the fisheye's axis the dots are 37 px, at its rim 18 px: no search band holds them all (a draw of
+    # random_fisheye_case, seed 2)
+    StressCase("fisheye-two-bands", 320, 360, 29.4, focal_px=170.0, k1=-0.35, k2=0.1, offset=(-0.430, -0.122),
+               tilt_deg=33.5, tilt_azimuth_deg=81.9, spin_deg=67.2, clutter=52, texture=True, shadow=0.5, colour=True,
+               jpeg=90, seed=55292379),
     # an evenly lit page filling the frame: the 12 dots are under 1 % of the pixels, the grey range
     # is the paper's noise (as in real photographs of a small grid on a large sheet)
     StressCase("page-15px", 640, 480, 15.0, tilt_deg=10.0, spin_deg=5.0, jpeg=85, colour=True, gradient=0.0,

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -129,6 +130,8 @@ class CoarseAttempt:
     circles: CoarseCircles
     order: GridOrder | None
     reason: str
+    levels: np.ndarray | None = None  # (K, 2) grey inside each circle and on the ring around it
+    shape: tuple[int, int] = (0, 0)  # of the coarse image
 
     @property
     def ok(self) -> bool:
@@ -206,13 +209,13 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
     def ordered(c: CoarseCircles, levels: np.ndarray) -> CoarseAttempt:
         if len(c) < 4:
             return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
-                                                  "dot grid")
+                                                  "dot grid", levels, pre.shape)
         t3 = time.perf_counter()
         order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
                            expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior,
                            levels=levels)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
-        return CoarseAttempt(factor, c, order, order.reason)
+        return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape)
 
     circles, levels = verified(circles)
     attempt = ordered(circles, levels)
@@ -235,6 +238,36 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
         return best
     last = ordered(more, np.concatenate([levels, blob_levels[added], blob_levels[~added][also]]))
     return last if last.ok or last.score >= best.score else best
+
+
+def join_bands(attempts: list[CoarseAttempt], plate: DotPlate, tm: dict, *, expected_rotation_deg: float | None,
+               mirrored: bool) -> CoarseAttempt | None:
+    """The grid from the candidates of two neighbouring bands together (by downsampling factor), on
+    the finer band's coarse image, or None when no pair gives it.
+
+    Through a fisheye or under a strong tilt the dots of one plate can span more than a band: the
+    large dots near the lens's axis beyond one band's largest, the squeezed ones at the rim found
+    only by the finer band (a circle of the coarser band at the place of one of the finer, of a
+    similar size, is the same candidate)."""
+    done = sorted((a for a in attempts if len(a.circles) and a.levels is not None), key=lambda a: a.factor)
+    for finer, coarser in pairwise(done):
+        if finer.factor == coarser.factor:
+            continue
+        scale = coarser.factor / finer.factor
+        c = coarser.circles
+        moved = CoarseCircles(full_to_coarse(coarse_to_full(c.centres, coarser.factor), finer.factor), c.axes * scale,
+                              c.theta, c.votes, c.rim_ratio)
+        merged, added = merge_candidates(finer.circles, moved)
+        if not added.any():
+            continue
+        t0 = time.perf_counter()
+        levels = np.concatenate([finer.levels, coarser.levels[added]])
+        order = order_grid(merged.centres, plate, sizes=2 * merged.axes[:, 0], image_shape=finer.shape,
+                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=levels)
+        tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t0
+        if order.ok:
+            return CoarseAttempt(finer.factor, merged, order, "", levels, finer.shape)
+    return None
 
 
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
@@ -293,6 +326,9 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         if attempts[-1].ok or expected_centres_px is not None:  # a prior fixes the scale: one band
             break
     attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.score)
+    if not attempt.ok:
+        joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
+        attempt = joined if joined is not None else attempt
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

@@ -199,24 +199,44 @@ def _second_order_steps(points, mn, at, f, axis, sign, step):
     the target place t is extrapolated to second order along a direction d through it where the
     three places behind it are filled, p(t−d) + Δ + (Δ − Δ'), Δ = p(t−d) − p(t−2d),
     Δ' = p(t−2d) − p(t−3d), when |Δ + Δ − Δ'| is within ×⅔…×1.5 of |Δ| (the direction of growth
-    first, then the others); elsewhere ``step`` as given (the carried step)."""
+    first, then the others); where no direction gives that, Δ turned and scaled as Δ' → Δ
+    (:func:`_similar_step`); elsewhere ``step`` as given (the carried step)."""
     out = step.copy()
     dirs = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))
     for i in range(len(f)):
         e = [0, 0]
         e[axis[i]] = sign[i]
         t = (int(mn[f[i], 0]) + e[0], int(mn[f[i], 1]) + e[1])
+        lines = []  # (p(t−d), Δ, Δ') along every direction d with the three places behind t filled
         for d in sorted(dirs, key=lambda d: d != tuple(e)):  # the direction of growth first
             behind = [at.get((t[0] - j * d[0], t[1] - j * d[1])) for j in (1, 2, 3)]
-            if any(b is None for b in behind):
-                continue
-            p1, p2, p3 = (points[b] for b in behind)
-            delta = p1 - p2
-            ahead = 2.0 * delta - (p2 - p3)
+            if all(b is not None for b in behind):
+                p1, p2, p3 = (points[b] for b in behind)
+                lines.append((p1, p1 - p2, p2 - p3))
+        for p1, delta, before in lines:
+            ahead = 2.0 * delta - before
             if 2.0 / 3.0 < np.linalg.norm(ahead) / max(float(np.linalg.norm(delta)), 1e-9) < 1.5:
                 out[i] = p1 + ahead - points[f[i]]
                 break
+        else:
+            for p1, delta, before in lines:
+                ahead = _similar_step(delta, before)
+                if ahead is not None:
+                    out[i] = p1 + ahead - points[f[i]]
+                    break
     return out
+
+
+def _similar_step(delta: np.ndarray, before: np.ndarray) -> np.ndarray | None:
+    """The step after ``delta`` (2,) px when each step is the one before it turned and scaled alike
+    (``before`` → ``delta``), or None when that scale is outside ×½…×2: where the steps shrink by a
+    third and more per dot (near the rim of a fisheye) the second difference overshoots, and a
+    geometric sequence follows them."""
+    d, b = complex(*delta), complex(*before)
+    if abs(b) < 1e-9 or not 0.5 < abs(d / b) < 2.0:
+        return None
+    z = d * (d / b)
+    return np.array([z.real, z.imag])
 
 
 def _unimodular(limit: int = 2) -> np.ndarray:

@@ -6,6 +6,7 @@
     .venv/bin/python bench/bench_stress.py --random 200    # random cases: found / refused / wrongly labelled
     .venv/bin/python bench/bench_stress.py --random 80 --fisheye   # random fisheye frames (random_fisheye_case)
     .venv/bin/python bench/bench_stress.py --hand-fit      # centres against the truth and a hand-fit-like rim ellipse
+    .venv/bin/python bench/bench_stress.py --envelope 8,12,20,50,150,400 --tilts 0,30,50   # the issue's envelope (RRHT)
 
 Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
 then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
@@ -49,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from tasks.machine.plate import DotPlate
 from tasks.simulation.detector_stress import (
     STRESS_CASES,
+    StressCase,
     errors_up_to_symmetry,
     random_case,
     random_fisheye_case,
@@ -100,9 +102,10 @@ def random_run(n: int, seed: int, fisheye: bool = False) -> None:
         plate = replace(case.plate, dark_dots=case.dark_dots)
         verdicts = []
         for d in counts:
-            c = run(d, image, plate)
+            det = detect_grid(image, plate, "rrht") if d == "rrht" else None
+            c = run(d, image, plate) if det is None else (det.centres if det.ok else None)
             if c is None:
-                verdict = "refused"
+                verdict = "refused" + (f" ({det.reason})" if det is not None else "")
             elif d == "rrht":
                 e = errors_up_to_symmetry(plate, c, truth)
                 verdict = "found" if e.max() < 0.25 * case.dot_px else "wrong"
@@ -111,7 +114,7 @@ def random_run(n: int, seed: int, fisheye: bool = False) -> None:
                 e = match_errors(c, truth, case.dot_px)
                 verdict = "found" if e is not None else "wrong"
                 errs[d] += [float(np.median(e))] if e is not None else []
-            counts[d][verdict] += 1
+            counts[d][verdict.split()[0]] += 1
             verdicts.append(f"{d} {verdict}")
         print(f"{case.name:11s} {case.width}x{case.height} dot {case.dot_px:5.1f}px tilt {case.tilt_deg:4.1f} "
               f"k1 {case.k1:+.2f} blur {case.defocus_px:.0f} jpeg {case.jpeg:2d} "
@@ -121,6 +124,38 @@ def random_run(n: int, seed: int, fisheye: bool = False) -> None:
         med = statistics.median(errs[d]) if errs[d] else float("nan")
         print(f"{d:15s} found {c['found']}, refused {c['refused']}, wrong {c['wrong']}; "
               f"median of the per-image median centre errors {med:.3f} px")
+
+
+def envelope_run(dot_sizes: list[float], tilts: list[float], size: str | None, defocus_px: float, k1: float) -> None:
+    """RRHT on a grid of cases: each dot size (px) × tilt (deg) × polarity, with clutter, paper texture, a
+    shadow edge, uneven light, colour and JPEG 80; images 640 × 480 below 20 px dots, 1280 × 960 below 100 px,
+    3024 × 4032 above (or ``size`` "WxH"); extra blur σ ``defocus_px``; with ``k1`` ≠ 0 the fisheye-like lens
+    (k2 0.1, f 0.55 × the longer side, the plate off its axis). Prints the verdict (found / refused / WRONG), the
+    wall time and the median and worst centre error."""
+    for d in dot_sizes:
+        w, h = (3024, 4032) if d >= 100 else ((1280, 960) if d >= 20 else (640, 480))
+        if size:
+            w, h = (int(x) for x in size.split("x"))
+        for tilt in tilts:
+            for dark in (True, False):
+                case = StressCase(f"envelope-{d:g}px-{tilt:g}deg", w, h, d, tilt_deg=tilt, tilt_azimuth_deg=37.0,
+                                  spin_deg=20.0, dark_dots=dark, clutter=30, texture=True, shadow=0.5, gradient=0.8,
+                                  vignetting=0.3, colour=True, jpeg=80, seed=1000, defocus_px=defocus_px, k1=k1,
+                                  k2=0.1 if k1 else 0.0, focal_px=0.55 * max(w, h) if k1 else 0.0,
+                                  offset=(0.2, -0.15) if k1 else (0.0, 0.0))
+                image, truth = render_stress_case(case)
+                plate = replace(case.plate, dark_dots=dark)
+                t0 = time.perf_counter()
+                det = detect_grid(image, plate, "rrht")
+                ms = 1e3 * (time.perf_counter() - t0)
+                if det.ok:
+                    e = errors_up_to_symmetry(plate, det.centres, truth)
+                    verdict = "found" if e.max() < 0.25 * d else "WRONG"
+                    what = f"median {np.median(e):.3f} px, worst {e.max():.3f} px"
+                else:
+                    verdict, what = "refused", det.reason
+                print(f"{case.name:22s} {w}x{h} {'dark ' if dark else 'light'} blur {defocus_px:g} k1 {k1:+.2f} "
+                      f"{verdict:7s} {ms:6.0f} ms  {what}", flush=True)
 
 
 def hand_fit_run(cases) -> None:
@@ -158,7 +193,16 @@ def main() -> None:
                     "(detector_stress.random_fisheye_case) instead")
     ap.add_argument("--hand-fit", action="store_true", help="RRHT's centres and ellipse centres against the true "
                     "centres and against a hand-fit-like rim ellipse, per case")
+    ap.add_argument("--envelope", help="dot sizes px, comma-separated: RRHT on the envelope grid (envelope_run)")
+    ap.add_argument("--tilts", default="0,30,50", help="with --envelope: tilts, deg")
+    ap.add_argument("--size", help="with --envelope: image size WxH instead of one by dot size")
+    ap.add_argument("--defocus", type=float, default=0.0, help="with --envelope: extra blur σ px")
+    ap.add_argument("--k1", type=float, default=0.0, help="with --envelope: radial distortion (−0.35: fisheye)")
     args = ap.parse_args()
+    if args.envelope:
+        envelope_run([float(x) for x in args.envelope.split(",")], [float(x) for x in args.tilts.split(",")],
+                     args.size, args.defocus, args.k1)
+        return
     if args.hand_fit:
         hand_fit_run([c for c in STRESS_CASES if not args.case or c.name in args.case])
         return

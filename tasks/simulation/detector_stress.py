@@ -252,6 +252,25 @@ STRESS_CASES: tuple[StressCase, ...] = (
     StressCase("fisheye-steps", 320, 360, 34.0, focal_px=170.0, k1=-0.35, k2=0.1, offset=(-0.19, 0.24),
                tilt_deg=20.0, tilt_azimuth_deg=34.0, spin_deg=-39.0, clutter=56, texture=True, colour=True, jpeg=90,
                seed=696575915),
+    # light dots through the fisheye, clutter blobs of the dots' size one step beyond the grid (lattice-aligned
+    # strays, not plate dots: a draw of random_fisheye_case)
+    StressCase("fisheye-strays", 320, 360, 39.1, focal_px=170.0, k1=-0.35, k2=0.1, offset=(-0.316, 0.425),
+               tilt_deg=31.1, tilt_azimuth_deg=296.1, spin_deg=-7.2, dark_dots=False, clutter=33, colour=True, jpeg=90,
+               seed=1042573142),
+    # the fisheye squeezes one side of the grid so hard that its rows turn by 45° from one dot to the next and
+    # the dots shrink from 45 to 20 px (a draw of random_fisheye_case)
+    StressCase("fisheye-squeezed", 320, 360, 36.7, focal_px=170.0, k1=-0.35, k2=0.1, offset=(0.232, 0.172),
+               tilt_deg=32.0, tilt_azimuth_deg=296.2, spin_deg=-115.5, clutter=47, shadow=0.5, colour=True, jpeg=90,
+               seed=93073361),
+    # near the fisheye's axis the dots are 37 px, at its rim 18 px: no search band holds them all (a draw of
+    # random_fisheye_case, seed 2)
+    StressCase("fisheye-two-bands", 320, 360, 29.4, focal_px=170.0, k1=-0.35, k2=0.1, offset=(-0.430, -0.122),
+               tilt_deg=33.5, tilt_azimuth_deg=81.9, spin_deg=67.2, clutter=52, texture=True, shadow=0.5, colour=True,
+               jpeg=90, seed=55292379),
+    # tilted away towards the fisheye's rim: the step from row to row shrinks by a third and more (51, 32, 21 px),
+    # beyond a second difference's reach (a draw of random_fisheye_case, seed 2)
+    StressCase("fisheye-shrinking", 320, 360, 37.0, focal_px=170.0, k1=-0.35, k2=0.1, offset=(-0.293, 0.268),
+               tilt_deg=34.9, tilt_azimuth_deg=13.4, spin_deg=-27.7, clutter=38, colour=True, jpeg=90, seed=785639203),
     # an evenly lit page filling the frame: the 12 dots are under 1 % of the pixels, the grey range
     # is the paper's noise (as in real photographs of a small grid on a large sheet)
     StressCase("page-15px", 640, 480, 15.0, tilt_deg=10.0, spin_deg=5.0, jpeg=85, colour=True, gradient=0.0,

@@ -526,3 +526,23 @@ def test_a_small_grid_with_faint_halos_on_an_even_page_is_found():
     det = detect_grid(img, plate, "rrht")
     assert det.ok, det.reason
     assert errors_up_to_symmetry(plate, det.centres, truth).max() < 0.1  # without a prior: up to symmetry
+
+
+def test_a_region_of_another_size_than_the_circle_at_its_place_is_kept_on_request():
+    """Merging region candidates into the Hough circles: a region at a circle's place is the same
+    candidate; with ``other_sizes`` it is kept beside it when the circle is 0.6 of its size (on a
+    strongly blurred dot the circle can lock on to a ring inside it), not when their sizes are alike;
+    a region elsewhere is added either way."""
+    from tasks.vision.detection.framework import merge_candidates
+    from tasks.vision.detection.rrht import CoarseCircles
+
+    def circles(centres, radii):
+        c, r = np.asarray(centres, float), np.asarray(radii, float)
+        return CoarseCircles(c, np.column_stack([r, r]), np.zeros(len(r)), np.ones(len(r)), np.ones(len(r)))
+
+    hough = circles([[50, 50], [100, 50]], [10.0, 6.0])
+    regions = circles([[51, 50], [101, 51], [200, 50]], [11.0, 10.0, 10.0])
+    assert merge_candidates(hough, regions)[1].tolist() == [False, False, True]
+    merged, added = merge_candidates(hough, regions, other_sizes=True)
+    assert added.tolist() == [False, True, True]
+    assert len(merged) == 4 and np.allclose(merged.centres[2:], [[101, 51], [200, 50]])

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from fivecal.cli import app
 from tasks.simulation.detector_stress import STRESS_CASES, errors_up_to_symmetry, render_stress_case
 from tasks.vision.detection import detect_grid
-from tasks.vision.detection.debug_image import BANNER_FAIL, BANNER_OK, draw_detection
+from tasks.vision.detection.debug_image import BANNER_FAIL, BANNER_OK, LATTICE, draw_detection
 from tasks.vision.detection.framework import FrameworkParams, detect_rrht
 from tasks.vision.detection.subpixel import SubpixelParams
 
@@ -35,6 +35,13 @@ def _plate(case):
     (CASES["fisheye"], 0.3, 0.8),
     (CASES["fisheye-light"], 0.3, 0.8),
     (CASES["fisheye-steps"], 0.3, 0.8),  # steps growing by a third per row (before: "missing dots")
+    # clutter blobs one step beyond the grid (before: "extra dots: 2 lattice-aligned dots"); its dot at the
+    # frame's corner, 39 px through the fisheye, is 2.2 px off (not an ellipse)
+    (CASES["fisheye-strays"], 0.4, 2.5),
+    (CASES["fisheye-squeezed"], 0.3, 1.2),  # rows turning by 45° per dot (before: "missing dots", 9 of 12)
+    (CASES["fisheye-two-bands"], 0.3, 1.2),  # dots of 18–37 px, no band holds all (before: "missing dots")
+    (CASES["fisheye-shrinking"], 0.3, 1.6),  # steps shrinking by a third per row (before: "missing dots"); its
+    # dots of 44–46 px near the lens axis are 1.4 and 0.9 px off (not ellipses)
     (CASES["distant-15px"], 0.05, 0.1),
     (CASES["distant-8px"], 0.05, 0.1),
     (CASES["tilt-50"], 0.05, 0.1),
@@ -92,6 +99,11 @@ def test_a_hidden_dot_is_refused_not_guessed():
     cv2.circle(image, (int(u), int(v)), int(0.65 * case.dot_px), paper, -1)  # a label stuck over dot 5
     det = detect_grid(image, _plate(case), "rrht")
     assert not det.ok and "missing dots" in det.reason
+    # the lattice grown is reported and drawn: the 11 dots left, each at its own place
+    assert det.lattice_px.shape == (11, 2) and len({tuple(c) for c in det.lattice_coords.tolist()}) == 11
+    assert np.linalg.norm(det.lattice_px[:, None] - np.delete(truth, 5, axis=0)[None], axis=2).min(axis=1).max() < 3.0
+    drawing = draw_detection(image, det, _plate(case))
+    assert (drawing == np.array(LATTICE, np.uint8)).all(axis=2).sum() > 100
 
 
 def test_debug_image_shows_the_verdict_and_the_cli_writes_it(tmp_path):

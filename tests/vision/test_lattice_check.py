@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
+from tasks.machine.plate import DotPlate
 from tasks.simulation.detector_stress import STRESS_CASES
 from tasks.simulation.render import true_dot_centres
-from tasks.vision.detection.lattice_check import MAX_CELL_MISFIT, cell_misfits, check_window
+from tasks.vision.detection.grid import order_grid
+from tasks.vision.detection.lattice_check import MAX_CELL_MISFIT, cell_misfits, check_window, plate_like_strays
 
 
 def fisheye_grid() -> np.ndarray:
@@ -60,3 +64,46 @@ def test_a_replacement_must_have_the_dots_size():
     took[0, 2] = 12
     _, why = check_window(pts, sizes, took)
     assert why.startswith("irregular lattice")
+
+
+def _five_by_three_plate_without_one_dot() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (14, 2), sizes (14,), levels (14, 2)): a 5 × 3 plate through the fisheye stress case's
+    lens with dot (0, 0) unseen, so that as a 4 × 3 plate it has one complete window (rows 1–4) and
+    two plate dots beyond it (row 0)."""
+    case = next(c for c in STRESS_CASES if c.name == "fisheye")
+    plate = replace(case.plate, rows=5)
+    pts = true_dot_centres(case.camera(), plate, case.pose())[1:]
+    return pts, np.full(14, 30.0), np.tile([60.0, 200.0], (14, 1))
+
+
+def test_plate_dots_beyond_the_window_are_refused_as_extra_dots():
+    """A bigger plate than asked for continues the window's lattice, size and grey levels: its dots
+    beyond the window count, and the view is refused (a 4 × 3 label of a 5 × 3 plate would be wrong)."""
+    pts, sizes, levels = _five_by_three_plate_without_one_dot()
+    plate = DotPlate(4, 3, 6.0, 4.0)
+    for lv in (None, levels):
+        order = order_grid(pts, plate, sizes=sizes, levels=lv)
+        assert not order.ok and order.reason.startswith("extra dots: 2 lattice-aligned dots beyond the 4x3 window")
+
+
+def test_clutter_beyond_the_window_is_not_an_extra_dot():
+    """The same two points beyond the window as clutter: of another grey level inside (half the dots'
+    contrast lighter) or of 0.7× the size, or off the place the window's lattice carries on to by 0.4
+    of a step: not plate dots, so the window is labelled, every dot right up to the grid's symmetry."""
+    pts, sizes, levels = _five_by_three_plate_without_one_dot()
+    plate = DotPlate(4, 3, 6.0, 4.0)
+    lattice = np.vstack([[-1, 0, 1], np.arange(2, 14).reshape(4, 3)])
+    window = (4, 3, 1, 0)
+    assert plate_like_strays(pts, sizes, levels, lattice, window).all()
+    lighter, smaller, moved = levels.copy(), sizes.copy(), pts.copy()
+    lighter[:2, 0] += 0.5 * 140.0
+    smaller[:2] *= 0.7
+    moved[:2] += 0.4 * np.linalg.norm(pts[2] - pts[5]) * np.array([0.6, 0.8])
+    assert not plate_like_strays(moved, sizes, levels, lattice, window).any()
+    true = np.arange(2, 14).reshape(4, 3)
+    for s, lv in ((sizes, lighter), (smaller, levels)):
+        assert not plate_like_strays(pts, s, lv, lattice, window).any()
+        order = order_grid(pts, plate, sizes=s, levels=lv)
+        assert order.ok, order.reason
+        got = order.index.reshape(4, 3)
+        assert any((got == t).all() for t in (true, true[::-1], true[:, ::-1], true[::-1, ::-1]))

@@ -3,7 +3,9 @@
 :func:`draw_detection` returns a BGR copy of the image (scaled so that its longer side is at most
 ``max_side_px``) with every coarse candidate circle (thin, orange), each found dot's ellipse centre
 and its (row, col) label (green), the grid's rows joined by lines (row 0 red, the others green:
-the labelling's orientation at a glance), and a banner with "ok" or the rejection reason.
+the labelling's orientation at a glance), and a banner with "ok" or the rejection reason; on a
+refusal, the lattice grown through the candidates (cyan: its neighbours joined, each point's
+lattice coordinates), so that the dots it missed or the strays it took show.
 Units: px of the input image; the drawing is scaled by one factor.
 """
 
@@ -18,6 +20,7 @@ from tasks.vision.detection.result import GridDetection
 CANDIDATE = (0, 140, 255)  # BGR
 FOUND = (0, 200, 0)
 FIRST_ROW = (0, 0, 230)
+LATTICE = (230, 200, 0)
 BANNER_OK = (0, 120, 0)
 BANNER_FAIL = (0, 0, 180)
 
@@ -53,6 +56,8 @@ def draw_detection(image: np.ndarray, det: GridDetection, plate: DotPlate, max_s
             diam = np.full(len(det.candidates_px), 10.0)
         for uv, d in zip(det.candidates_px, diam, strict=True):
             cv2.circle(bgr, pt(uv), max(2, round(d * s / 2)), CANDIDATE, lw, cv2.LINE_AA)
+    if not det.ok and det.lattice_px is not None:
+        _draw_lattice(bgr, det.lattice_px, det.lattice_coords, pt, lw)
     found = det.found
     if det.ok and found.any():
         uv = det.ellipse_centres if det.ellipse_centres is not None else det.centres
@@ -77,3 +82,21 @@ def draw_detection(image: np.ndarray, det: GridDetection, plate: DotPlate, max_s
         cv2.putText(bgr, line, (4 * lw, line_h * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX, 0.45 * lw, (255, 255, 255),
                     lw, cv2.LINE_AA)
     return bgr
+
+
+MAX_LATTICE_LABELS = 60
+"""A lattice of more points is drawn without its coordinates (they would cover it)."""
+
+
+def _draw_lattice(bgr: np.ndarray, uv: np.ndarray, coords: np.ndarray, pt, lw: int) -> None:
+    """Join the lattice points ``uv`` (L, 2) px whose coordinates ``coords`` (L, 2) are one step apart,
+    and label each with its coordinates up to :data:`MAX_LATTICE_LABELS` points (``pt``: image px →
+    drawing px)."""
+    at = {tuple(c): k for k, c in enumerate(np.asarray(coords).tolist())}
+    for (a, b), k in at.items():
+        for nb in ((a + 1, b), (a, b + 1)):
+            if nb in at:
+                cv2.line(bgr, pt(uv[k]), pt(uv[at[nb]]), LATTICE, lw, cv2.LINE_AA)
+        if len(at) <= MAX_LATTICE_LABELS:
+                cv2.putText(bgr, f"{a},{b}", (pt(uv[k])[0] + 3 * lw, pt(uv[k])[1] + 12 * lw),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.35 * lw, LATTICE, lw, cv2.LINE_AA)

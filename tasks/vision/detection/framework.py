@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 
@@ -38,14 +39,14 @@ from tasks.vision.detection.blobs import contour_candidates
 from tasks.vision.detection.chaincode import filter_edges
 from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.grid import order_grid
-from tasks.vision.detection.grid_order import GridOrder
+from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder
 from tasks.vision.detection.partial_view import too_few_dots
 from tasks.vision.detection.perspective import correct_bias, correct_bias_local, fit_homography, project
 from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
 from tasks.vision.detection.result import GridDetection
 from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
 from tasks.vision.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
-from tasks.vision.detection.verify import dot_fill
+from tasks.vision.detection.verify import dot_appearance
 
 
 @dataclass
@@ -129,6 +130,8 @@ class CoarseAttempt:
     circles: CoarseCircles
     order: GridOrder | None
     reason: str
+    levels: np.ndarray | None = None  # (K, 2) grey inside each circle and on the ring around it
+    shape: tuple[int, int] = (0, 0)  # of the coarse image
 
     @property
     def ok(self) -> bool:
@@ -198,44 +201,93 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
         circles = rrht_circles(em, edges, plate.dark_dots, r_min, r_max, p.rrht, seed=p.seed, timings=tm)
     prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
 
-    def verified(c: CoarseCircles) -> CoarseCircles:
-        fill_in, fill_out = dot_fill(pre, c.centres, c.axes, c.theta, plate.dark_dots)
-        return c.subset((fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside))
+    def verified(c: CoarseCircles) -> tuple[CoarseCircles, np.ndarray]:  # and their grey levels (K, 2)
+        fill_in, fill_out, levels = dot_appearance(pre, c.centres, c.axes, c.theta, plate.dark_dots)
+        keep = (fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside)
+        return c.subset(keep), levels[keep]
 
-    def ordered(c: CoarseCircles) -> CoarseAttempt:
+    def ordered(c: CoarseCircles, levels: np.ndarray) -> CoarseAttempt:
         if len(c) < 4:
             return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
-                                                  "dot grid")
+                                                  "dot grid", levels, pre.shape)
         t3 = time.perf_counter()
         order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
-                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior)
+                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior,
+                           levels=levels)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
-        return CoarseAttempt(factor, c, order, order.reason)
+        return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape)
 
-    circles = verified(circles)
-    attempt = ordered(circles)
+    circles, levels = verified(circles)
+    attempt = ordered(circles, levels)
     if attempt.ok or not p.contour_fallback:
         return attempt
     t4 = time.perf_counter()
-    blobs = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
-    merged = merge_candidates(circles, blobs)
+    blobs, blob_levels = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
+    merged, added = merge_candidates(circles, blobs)
     tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t4
     if len(merged) == len(circles):
         return attempt
-    retry = ordered(merged)
-    return retry if retry.ok or retry.score >= attempt.score else attempt
+    retry = ordered(merged, np.concatenate([levels, blob_levels[added]]))
+    best = retry if retry.ok or retry.score >= attempt.score else attempt
+    if best.ok:
+        return best
+    # under a strong blur the Hough circle can lock on to a ring inside a dot, of another size than
+    # the dot's region: with those regions too, the lattice takes the one that fits its neighbours
+    more, also = merge_candidates(merged, blobs.subset(~added), other_sizes=True)
+    if not also.any():
+        return best
+    last = ordered(more, np.concatenate([levels, blob_levels[added], blob_levels[~added][also]]))
+    return last if last.ok or last.score >= best.score else best
 
 
-def merge_candidates(first: CoarseCircles, more: CoarseCircles) -> CoarseCircles:
-    """``first`` and the circles of ``more`` that are not within half a minor axis of one of them."""
+def join_bands(attempts: list[CoarseAttempt], plate: DotPlate, tm: dict, *, expected_rotation_deg: float | None,
+               mirrored: bool) -> CoarseAttempt | None:
+    """The grid from the candidates of two neighbouring bands together (by downsampling factor), on
+    the finer band's coarse image, or None when no pair gives it.
+
+    Through a fisheye or under a strong tilt the dots of one plate can span more than a band: the
+    large dots near the lens's axis beyond one band's largest, the squeezed ones at the rim found
+    only by the finer band (a circle of the coarser band at the place of one of the finer, of a
+    similar size, is the same candidate)."""
+    done = sorted((a for a in attempts if len(a.circles) and a.levels is not None), key=lambda a: a.factor)
+    for finer, coarser in pairwise(done):
+        if finer.factor == coarser.factor:
+            continue
+        scale = coarser.factor / finer.factor
+        c = coarser.circles
+        moved = CoarseCircles(full_to_coarse(coarse_to_full(c.centres, coarser.factor), finer.factor), c.axes * scale,
+                              c.theta, c.votes, c.rim_ratio)
+        merged, added = merge_candidates(finer.circles, moved)
+        if not added.any():
+            continue
+        t0 = time.perf_counter()
+        levels = np.concatenate([finer.levels, coarser.levels[added]])
+        order = order_grid(merged.centres, plate, sizes=2 * merged.axes[:, 0], image_shape=finer.shape,
+                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=levels)
+        tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t0
+        if order.ok:
+            return CoarseAttempt(finer.factor, merged, order, "", levels, finer.shape)
+    return None
+
+
+def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
+                     ) -> tuple[CoarseCircles, np.ndarray]:
+    """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
+    (len(more),) bool: which of ``more`` were added, after ``first``). With ``other_sizes``, a circle
+    of ``more`` at the place of one of ``first`` whose size differs beyond :data:`SIMILAR_SIZE` from
+    it is added too."""
     if len(first) == 0 or len(more) == 0:
-        return more if len(first) == 0 else first
+        return (more, np.ones(len(more), bool)) if len(first) == 0 else (first, np.zeros(len(more), bool))
     d = np.linalg.norm(more.centres[:, None, :] - first.centres[None, :, :], axis=2)
-    new = (d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])).all(axis=1)
+    apart = d >= 0.5 * np.minimum(more.axes[:, 1, None], first.axes[None, :, 1])
+    if other_sizes:
+        ratio = more.axes[:, 0, None] / first.axes[None, :, 0]
+        apart |= (ratio >= SIMILAR_SIZE) | (ratio <= 1.0 / SIMILAR_SIZE)
+    new = apart.all(axis=1)
     add = more.subset(new)
     return CoarseCircles(np.concatenate([first.centres, add.centres]), np.concatenate([first.axes, add.axes]),
                          np.concatenate([first.theta, add.theta]), np.concatenate([first.votes, add.votes]),
-                         np.concatenate([first.rim_ratio, add.rim_ratio]))
+                         np.concatenate([first.rim_ratio, add.rim_ratio])), new
 
 
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
@@ -274,10 +326,16 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         if attempts[-1].ok or expected_centres_px is not None:  # a prior fixes the scale: one band
             break
     attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.score)
+    if not attempt.ok:
+        joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
+        attempt = joined if joined is not None else attempt
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}
     if not attempt.ok:
+        if order is not None and order.lattice_index is not None:
+            debug["lattice_px"] = coarse_to_full(circles.centres[order.lattice_index], factor)
+            debug["lattice_coords"] = order.lattice_coords
         return fail(attempt.reason, **debug)
     rc = plate.row_col()
     found = order.index >= 0

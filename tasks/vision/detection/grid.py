@@ -33,8 +33,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.machine.plate import DotPlate
-from tasks.vision.detection.grid_order import GridOrder, fail_order, lattice_steps, rotation_deg
-from tasks.vision.detection.lattice_check import check_window
+from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder, fail_order, lattice_steps, rotation_deg
+from tasks.vision.detection.lattice_check import check_window, plate_like_strays
 from tasks.vision.detection.partial_view import order_by_prior
 
 __all__ = ["GridOrder", "build_lattice", "order_grid", "reduce_lattice"]
@@ -76,7 +76,7 @@ def build_lattice(points: np.ndarray, sizes: np.ndarray | None, spacing_ratio: f
     if sizes is not None:
         ratio_lo, ratio_hi = np.broadcast_to(np.asarray(spacing_ratio, dtype=float), (2,))
         lo, hi = 0.5 * ratio_lo * sizes, 1.35 * ratio_hi * sizes  # (N,)
-        size_ok = (sizes[idx] < 1.45 * sizes[:, None]) & (sizes[idx] > sizes[:, None] / 1.45)
+        size_ok = (sizes[idx] < SIMILAR_SIZE * sizes[:, None]) & (sizes[idx] > sizes[:, None] / SIMILAR_SIZE)
     else:
         med = np.median(dist[:, 0])
         lo, hi = np.full(n, 0.6 * med), np.full(n, 1.6 * med)
@@ -163,7 +163,7 @@ def _grow(points, tree, seed, steps, has, sizes, second_order: bool = False):
             ok = np.isfinite(d) & (d <= 0.3 * np.linalg.norm(step, axis=1))
             j = np.where(ok, j, 0)
             if sizes is not None:
-                ok &= (sizes[j] > sizes[f] / 1.45) & (sizes[j] < sizes[f] * 1.45)
+                ok &= (sizes[j] > sizes[f] / SIMILAR_SIZE) & (sizes[j] < sizes[f] * SIMILAR_SIZE)
             return ok & ~assigned[j], j
 
         ok, j = claims(step)
@@ -199,24 +199,44 @@ def _second_order_steps(points, mn, at, f, axis, sign, step):
     the target place t is extrapolated to second order along a direction d through it where the
     three places behind it are filled, p(t−d) + Δ + (Δ − Δ'), Δ = p(t−d) − p(t−2d),
     Δ' = p(t−2d) − p(t−3d), when |Δ + Δ − Δ'| is within ×⅔…×1.5 of |Δ| (the direction of growth
-    first, then the others); elsewhere ``step`` as given (the carried step)."""
+    first, then the others); where no direction gives that, Δ turned and scaled as Δ' → Δ
+    (:func:`_similar_step`); elsewhere ``step`` as given (the carried step)."""
     out = step.copy()
-    dirs = ((1, 0), (-1, 0), (0, 1), (0, -1))
+    dirs = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1))
     for i in range(len(f)):
         e = [0, 0]
         e[axis[i]] = sign[i]
         t = (int(mn[f[i], 0]) + e[0], int(mn[f[i], 1]) + e[1])
+        lines = []  # (p(t−d), Δ, Δ') along every direction d with the three places behind t filled
         for d in sorted(dirs, key=lambda d: d != tuple(e)):  # the direction of growth first
             behind = [at.get((t[0] - j * d[0], t[1] - j * d[1])) for j in (1, 2, 3)]
-            if any(b is None for b in behind):
-                continue
-            p1, p2, p3 = (points[b] for b in behind)
-            delta = p1 - p2
-            ahead = 2.0 * delta - (p2 - p3)
+            if all(b is not None for b in behind):
+                p1, p2, p3 = (points[b] for b in behind)
+                lines.append((p1, p1 - p2, p2 - p3))
+        for p1, delta, before in lines:
+            ahead = 2.0 * delta - before
             if 2.0 / 3.0 < np.linalg.norm(ahead) / max(float(np.linalg.norm(delta)), 1e-9) < 1.5:
                 out[i] = p1 + ahead - points[f[i]]
                 break
+        else:
+            for p1, delta, before in lines:
+                ahead = _similar_step(delta, before)
+                if ahead is not None:
+                    out[i] = p1 + ahead - points[f[i]]
+                    break
     return out
+
+
+def _similar_step(delta: np.ndarray, before: np.ndarray) -> np.ndarray | None:
+    """The step after ``delta`` (2,) px when each step is the one before it turned and scaled alike
+    (``before`` → ``delta``), or None when that scale is outside ×½…×2: where the steps shrink by a
+    third and more per dot (near the rim of a fisheye) the second difference overshoots, and a
+    geometric sequence follows them."""
+    d, b = complex(*delta), complex(*before)
+    if abs(b) < 1e-9 or not 0.5 < abs(d / b) < 2.0:
+        return None
+    z = d * (d / b)
+    return np.array([z.real, z.imag])
 
 
 def _unimodular(limit: int = 2) -> np.ndarray:
@@ -264,7 +284,7 @@ def _dihedral(rows: int, cols: int, h: int, w: int):
 def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None = None,
                image_shape: tuple[int, int] | None = None, expected_rotation_deg: float | None = None,
                mirrored: bool = False, lattice: tuple[np.ndarray, np.ndarray] | None = None,
-               expected_centres: np.ndarray | None = None) -> GridOrder:
+               expected_centres: np.ndarray | None = None, levels: np.ndarray | None = None) -> GridOrder:
     """Assign detected points (N, 2) px to the plate's dots.
 
     sizes: (N,) dot diameters in px (major axis), used to bound neighbour spacing and reject
@@ -274,6 +294,9 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     expected_centres: (rows*cols, 2) px, where the dots should be (same frame as ``points``); with
     ``image_shape``, a lattice without a complete window is then ordered as a partial view
     (:func:`tasks.vision.detection.partial_view.order_by_prior`: ``index`` is −1 for the dots not found).
+    levels: (N, 2) grey inside each point's dot and on the ring around it; with ``sizes``, the
+    lattice points beyond a complete window that do not continue the window's lattice, size and
+    levels are clutter and do not count as extra dots (:func:`tasks.vision.detection.lattice_check.plate_like_strays`).
     """
     rows, cols = plate.rows, plate.cols
     need = rows * cols
@@ -316,20 +339,24 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
                                 | (p[:, 1] < margin) | (p[:, 1] > hi - 1 - margin)).any())
         if near_border:
             return fail_order(plate, f"partial view: plate partly out of the image ({shape_txt} lattice of "
-                                     f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww))
+                                     f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww), (sel, g))
         return fail_order(plate, f"missing dots: {shape_txt} lattice of {found} dots, at most "
-                                 f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww))
+                                 f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww), (sel, g))
     if len(windows) > 1:
         return fail_order(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
-                                 f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww))
+                                 f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww), (sel, g))
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
-    if strays >= max(2, (min(rows, cols) + 1) // 2):
+    limit = max(2, (min(rows, cols) + 1) // 2)
+    if strays >= limit and levels is not None and sizes is not None:
+        like = plate_like_strays(points, sizes, levels, occ, windows[0]).sum()
+        strays = strays if like >= limit else 0
+    if strays >= limit:
         return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
-                                 f"window ({shape_txt} lattice)", (hh, ww))
+                                 f"window ({shape_txt} lattice)", (hh, ww), (sel, g))
     win, irregular = check_window(points, sizes, occ[a0 : a0 + h, b0 : b0 + w])
     if irregular:
-        return fail_order(plate, irregular, (hh, ww))
+        return fail_order(plate, irregular, (hh, ww), (sel, g))
     ab = np.stack(np.meshgrid(np.arange(h), np.arange(w), indexing="ij"), axis=-1).reshape(-1, 2)
     pidx = win.reshape(-1)
     pts = points[pidx]

@@ -11,6 +11,10 @@ import numpy as np
 
 from tasks.machine.plate import DotPlate
 
+SIMILAR_SIZE = 1.45
+"""Two dots of one plate differ in size (major axis) by less than this factor where the lattice links
+them: neighbours in growth, a dot and its replacement in the window check."""
+
 
 @dataclass
 class GridOrder:
@@ -22,11 +26,17 @@ class GridOrder:
     rotation_deg: float = float("nan")  # angle of the plate +X axis in the image (ccw on screen)
     ambiguous: bool = False  # several orientations possible and no prior chose between them
     lattice_shape: tuple[int, int] = (0, 0)  # extent of the connected lattice found
+    lattice_index: np.ndarray | None = None  # (L,) the input points of that lattice (on a refusal, for a drawing)
+    lattice_coords: np.ndarray | None = None  # (L, 2) int their lattice coordinates
 
 
-def fail_order(plate: DotPlate, reason: str, shape=(0, 0)) -> GridOrder:
-    """A failed ordering of ``plate`` with its reason; ``shape`` is the lattice found."""
-    return GridOrder(False, reason, np.full(plate.rows * plate.cols, -1), lattice_shape=shape)
+def fail_order(plate: DotPlate, reason: str, shape=(0, 0), lattice: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> GridOrder:
+    """A failed ordering of ``plate`` with its reason; ``shape`` is the lattice found, ``lattice`` its
+    points (L,) (indices of the input points) and their coordinates (L, 2)."""
+    index, coords = lattice if lattice is not None else (None, None)
+    return GridOrder(False, reason, np.full(plate.rows * plate.cols, -1), lattice_shape=shape,
+                     lattice_index=index, lattice_coords=coords)
 
 
 def lattice_steps(points_px: np.ndarray, row_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tasks.vision.detection.grid_order import SIMILAR_SIZE
+
 MAX_CELL_MISFIT = 0.35
 """Largest mixed second difference of a 2 × 2 cell, as a fraction of its mean side, for a window to
 be accepted."""
@@ -70,8 +72,8 @@ def check_window(points: np.ndarray, sizes: np.ndarray | None, window: np.ndarra
                  max_cell_misfit: float = MAX_CELL_MISFIT) -> tuple[np.ndarray, str]:
     """(window, reason): ``window`` (h, w) indices into ``points`` (N, 2) px, with dots replaced by
     better-fitting candidates (step 1 of the module docstring; ``sizes`` (N,) px bound how
-    similar a replacement must be, within 1.45×); reason is "" when every cell closes (step 2),
-    else why the window is refused."""
+    similar a replacement must be, within ``SIMILAR_SIZE``); reason is "" when every cell closes
+    (step 2), else why the window is refused."""
     window = window.copy()
     h, w = window.shape
     if h < 2 or w < 2:
@@ -91,7 +93,8 @@ def check_window(points: np.ndarray, sizes: np.ndarray | None, window: np.ndarra
             for d, k in zip(np.atleast_1d(dist), np.atleast_1d(near), strict=True):
                 if d > off[i, j] / SWAP_MARGIN or k in taken:
                     continue
-                if sizes is not None and not (sizes[window[i, j]] / 1.45 < sizes[k] < sizes[window[i, j]] * 1.45):
+                own = None if sizes is None else sizes[window[i, j]]
+                if own is not None and not (own / SIMILAR_SIZE < sizes[k] < own * SIMILAR_SIZE):
                     continue
                 trial = window.copy()
                 trial[i, j] = k
@@ -109,3 +112,66 @@ def check_window(points: np.ndarray, sizes: np.ndarray | None, window: np.ndarra
                         f"is off a parallelogram by {misfit[i, j]:.2f} of its step (at most {max_cell_misfit}); "
                         "one of its dots may be a stray blob")
     return window, ""
+
+
+STRAY_MAX_STEP_MISFIT = 0.3
+"""A lattice point beyond the window is like a plate dot only within this fraction of a step of its
+place extrapolated from the window (second order from the three dots behind it in line: the true
+dots next to a 4 × 3 window of 80 random fisheye stress cases, ``detector_stress.random_fisheye_case``,
+reach 0.24 with the coarse search's centres)."""
+STRAY_SIZE_RANGE = (0.75, 1.4)
+"""… with a size within this factor of the size extrapolated (linearly) from the two dots behind it
+(true dots: 0.83–1.36) …"""
+STRAY_MAX_LEVEL_CHANGE = (0.35, 0.65)
+"""… and grey levels inside the dot and on the ring around it within these fractions of the dot's
+contrast of the dot behind it (true dots, under shadow edges: 99 % within 0.24 and 0.38, at most
+1.07 and 0.62)."""
+
+
+def plate_like_strays(points: np.ndarray, sizes: np.ndarray, levels: np.ndarray, lattice: np.ndarray,
+                      window: tuple[int, int, int, int]) -> np.ndarray:
+    """(S,) bool per lattice point beyond the window: could it be a dot of the plate?
+
+    points (N, 2) px, sizes (N,) diameters px, levels (N, 2) grey inside the dot and on the ring
+    around it (:func:`tasks.vision.detection.verify.dot_appearance`); lattice (H, W) indices into
+    ``points`` (−1: empty); window (h, w, a0, b0) the complete rows × cols window in it. A stray is
+    clutter (False) when, along every line through it with three window dots behind it, it lies off
+    the place, size or grey levels those three carry on to (:data:`STRAY_MAX_STEP_MISFIT`,
+    :data:`STRAY_SIZE_RANGE`, :data:`STRAY_MAX_LEVEL_CHANGE`); without such a line it counts as a
+    plate dot. A printed plate bigger than the window (a wrong plate asked for) continues its
+    lattice, its size and its grey levels; clutter that growth took for the lattice's next dot
+    rarely does all three.
+    """
+    h, w, a0, b0 = window
+    hh, ww = lattice.shape
+    in_window = np.zeros((hh, ww), bool)
+    in_window[a0:a0 + h, b0:b0 + w] = True
+    places = [(r, c) for r, c in zip(*np.nonzero((lattice >= 0) & ~in_window), strict=True)]
+    like = np.ones(len(places), bool)
+    for s, (r, c) in enumerate(places):
+        verdicts = []
+        for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            behind = [(r - j * dr, c - j * dc) for j in (1, 2, 3)]
+            if not all(0 <= a < hh and 0 <= b < ww and in_window[a, b] for a, b in behind):
+                continue
+            k1, k2, k3 = (int(lattice[a, b]) for a, b in behind)
+            verdicts.append(_continues(points, sizes, levels, k3, k2, k1, int(lattice[r, c])))
+        like[s] = not verdicts or any(verdicts)
+    return like
+
+
+def _continues(points, sizes, levels, k3: int, k2: int, k1: int, k: int) -> bool:
+    """Whether point ``k`` continues the line of points k3, k2, k1 (in that order) in place, size and
+    grey levels (:func:`plate_like_strays`)."""
+    delta = points[k1] - points[k2]
+    ahead = points[k1] + 2.0 * delta - (points[k2] - points[k3])
+    if np.linalg.norm(points[k] - ahead) > STRAY_MAX_STEP_MISFIT * np.linalg.norm(delta):
+        return False
+    size_ahead = 2.0 * sizes[k1] - sizes[k2]
+    if not STRAY_SIZE_RANGE[0] < sizes[k] / max(size_ahead, 1e-9) < STRAY_SIZE_RANGE[1]:
+        return False
+    contrast = abs(levels[k1, 1] - levels[k1, 0])
+    change = np.abs(levels[k] - levels[k1]) / max(contrast, 1e-9)
+    if not np.isfinite(change).all():  # a dot without samples in the image: its levels cannot tell
+        return True
+    return bool(np.all(change <= np.array(STRAY_MAX_LEVEL_CHANGE)))

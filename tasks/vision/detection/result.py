@@ -29,7 +29,9 @@ class GridDetection:
     homography: (3, 3) plate (x, y) mm → image px fitted to the centres, or None.
     n_candidates: circles found before ordering; candidates_px (K, 2) and
     candidate_diameters_px (K,) are where and how large (full-size px), for a debug drawing
-    (None when the detector does not report them).
+    (None when the detector does not report them). On a refusal, lattice_px (L, 2) and
+    lattice_coords (L, 2) int: the candidates the grid's lattice was grown through and their
+    lattice coordinates (None when no lattice was grown).
     timings_s: seconds per stage; elapsed_s: total seconds inside the detector.
     """
 
@@ -49,6 +51,8 @@ class GridDetection:
     n_candidates: int = 0
     candidates_px: np.ndarray | None = None
     candidate_diameters_px: np.ndarray | None = None
+    lattice_px: np.ndarray | None = None
+    lattice_coords: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property

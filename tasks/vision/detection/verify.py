@@ -31,8 +31,17 @@ def dot_fill(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np
     (K, 2), semi-axes (K, 2), angle (K,)) on the dot's side of the halfway threshold, and of the
     samples outside them that step up (down) from the dot on their ray by a third of the dot's
     contrast; samples off the image are left out (a fraction is 1 without samples)."""
+    fill_in, fill_out, _ = dot_appearance(image, centres, axes, theta, dark_dots)
+    return fill_in, fill_out
+
+
+def dot_appearance(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
+                   dark_dots: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`dot_fill`'s (inside, outside) fractions (K,), and the candidates' grey levels (K, 2):
+    the median of the samples inside (0–0.65 of the axes) and of those on the ring outside (1.3–1.5),
+    in the image's grey levels (NaN without samples)."""
     if len(centres) == 0:
-        return np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0), np.zeros((0, 2))
     ang = np.arange(N_ANGLES) * (2 * np.pi / N_ANGLES)
     scales = np.array(INNER_SCALES + OUTER_SCALES)
     ca, sa = np.cos(ang), np.sin(ang)
@@ -68,4 +77,5 @@ def dot_fill(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np
         fill_out = np.where(n_o > 0, plate_side.sum(axis=1) / np.maximum(n_o, 1), 1.0)
     polarity_ok = sign * (m_out - m_in) > 0
     polarity_ok |= ~(np.isfinite(m_in) & np.isfinite(m_out))
-    return np.where(polarity_ok, fill_in, 0.0), np.where(polarity_ok, fill_out, 0.0)
+    return (np.where(polarity_ok, fill_in, 0.0), np.where(polarity_ok, fill_out, 0.0),
+            np.column_stack([m_in, m_out]))

@@ -15,8 +15,9 @@ Two levels, one table:
 
 Printed per model: the fit's σ² (train RMS², whitened), the model ladder's cross-validated RMS (refit per
 fold of five-axis poses, whitened; 1 at the noise level), the validation tip discrepancy (µm, arcsec) and
-the mean true tip error after compensating the validation poses with that model (µm, arcsec); and the
-diagnosis' first-ranked candidate with its share of the residual and whether it was accepted.
+the mean true tip error after compensating the validation poses with that model (µm, arcsec) and, on
+images, after the dispensing test's tip fit folded into that compensation (µm); and the diagnosis'
+first-ranked candidate with its share of the residual and whether it was accepted.
 
     python docs/examples/walkthrough.py                                  # poses, small plan, seed 7
     python docs/examples/walkthrough.py --plan default --seed 7          # poses, the demo's plan
@@ -58,7 +59,8 @@ POSE_COV = np.diag([0.21e-3**2] * 2 + [1.7e-3**2] + [(14.7 * ARCSEC) ** 2] * 2 +
 """Per-pose covariance of the plate pose's tangent vector (mm², rad²: x, y across camera 1's axis, z along it,
 the two tilts, the rotation about the axis): 0.21 µm, 0.21 µm, 1.7 µm, 14.7″, 14.7″, 1.15″."""
 COLUMNS = ["campaign", "model", "sigma2", "cv_rms", "bic", "validation_position_um", "validation_orientation_arcsec",
-           "noise_floor_position_um", "true_tip_after_um", "true_tip_after_arcsec", "vbm_tip_after_um"]
+           "noise_floor_position_um", "true_tip_after_um", "true_tip_after_arcsec", "vbm_tip_after_um",
+           "true_tip_after_dispensing_um"]
 
 
 @dataclass
@@ -113,7 +115,8 @@ def ladder_row(machine, campaign: str, label: str, result, meas: Measurements, t
             "bic": step["bic"], "validation_position_um": step["validation_position_um"],
             "validation_orientation_arcsec": step["validation_orientation_arcsec"],
             "noise_floor_position_um": step["noise_floor_position_um"],
-            "true_tip_after_um": tip[0], "true_tip_after_arcsec": tip[1], "vbm_tip_after_um": float("nan")}
+            "true_tip_after_um": tip[0], "true_tip_after_arcsec": tip[1], "vbm_tip_after_um": float("nan"),
+            "true_tip_after_dispensing_um": float("nan")}
 
 
 def added_spec(accepted: str | None, table: pd.DataFrame) -> str:
@@ -179,17 +182,27 @@ def image_story(workdir: Path, plan_name: str = "default", seed: int = 7, hidden
         t = t[(t.campaign_id == cid) & (t.camera == "camera1") & t.significant]
         return t.sort_values("p_value")[["variable", "component", "span", "p_value"]]
 
+    def dispensing_test(name: str, *effect: str) -> float:
+        """``fivecal dispense-test`` of the campaign's latest calibration: the mean true tip error (µm) of
+        the held-out poses compensated with the tip fit folded in."""
+        _fivecal("dispense-test", str(camps / name), *effect, *lake)
+        v = read_table("verification", results, campaign_id=name)
+        return float(v[(v.phase == "after_tip") & (v.source == "truth")].position_um.mean())
+
     out = _fivecal("diagnose", str(camps / "walk-hidden"), *lake)
     base, trends = diagnosis_of("walk-hidden"), {"hidden": trends_of("walk-hidden")}
+    dispensed = {("hidden", "base"): dispensing_test("walk-hidden")}
     found = re.search(r"^next: fivecal calibrate .* --add-effect '(.*)'$", out, re.M)
     added = added_spec(found.group(1) if found else None, base)
     _fivecal("diagnose", str(camps / "walk-hidden"), "--add-effect", added, *lake)
     after, trends["after"] = diagnosis_of("walk-hidden"), trends_of("walk-hidden")
+    dispensed["hidden", "added"] = dispensing_test("walk-hidden")
     pige = read_table("pige", results, campaign_id="walk-hidden")
     effect_rows = pige[pige.kind == "effect"][["name", "value", "uncertainty", "uncertainty_fit", "uncertainty_noise",
                                                "uncertainty_camera", "truth", "note"]]
     _fivecal("diagnose", str(camps / "walk-clean"), *lake)
     trends["clean"] = trends_of("walk-clean")
+    dispensed["clean", "base"] = dispensing_test("walk-clean")
     ladder = read_table("model_ladder", results)
     rows = []
     for campaign, cid in (("hidden", "walk-hidden"), ("clean", "walk-clean")):
@@ -201,7 +214,9 @@ def image_story(workdir: Path, plan_name: str = "default", seed: int = 7, hidden
                          "noise_floor_position_um": s.noise_floor_position_um,
                          "true_tip_after_um": s.compensated_truth_position_um,
                          "true_tip_after_arcsec": s.compensated_truth_orientation_arcsec,
-                         "vbm_tip_after_um": s.compensated_vbm_position_um})
+                         "vbm_tip_after_um": s.compensated_vbm_position_um,
+                         "true_tip_after_dispensing_um": dispensed.get(
+                             (campaign, "added" if s.effect_specs else "base"), float("nan"))})
     return Story(pd.DataFrame(rows, columns=COLUMNS), base, after, diagnosis_of("walk-clean"), added, trends,
                  effect_rows)
 

@@ -35,10 +35,11 @@ from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE, COMMAND_COLUMNS, Machine, machine_from_dict, plate_seen
 from tasks.machine.kinematics import forward
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_calibration import calibrate_camera, nominal_camera, trial_views
+from tasks.vision.camera_calibration import calibrate_camera, machine_views, nominal_camera, trial_views
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.grid_order import rotation_deg
 from tasks.vision.detection.perspective import project
+from tasks.vision.intrinsics_refinement import refine_intrinsics
 from tasks.vision.poses import estimate_poses
 
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
@@ -211,22 +212,39 @@ def detect_images(folder: Path, rows: pd.DataFrame, plates: Mapping[str, DotPlat
 
 def calibrate_cameras(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
                       ) -> tuple[pd.DataFrame, dict[str, CameraModel]]:
-    """Self-calibration of every camera from its camera_calibration views (§5.2, Table 3).
+    """Self-calibration of every camera from its camera_calibration views (§5.2, Table 3), its best
+    estimate refined on the machine's images of the plate the camera measures.
 
-    Returns the camera_calibration table (one row per trial and a "joint" row per camera: the
-    best estimate, fitted on every valid view) and {camera: calibrated intrinsics}.
+    The trials are fitted on the calibration views alone (Table 3); the joint best estimate is then
+    refined on those views and the camera's images in the sweeps and five-axis poses
+    (:func:`tasks.vision.camera_calibration.machine_views`, each view with a free pose;
+    :mod:`tasks.vision.intrinsics_refinement` says why). Returns the camera_calibration table (one
+    row per trial and a "joint" row per camera: the best estimate and the views it was fitted on)
+    and {camera: calibrated intrinsics}. dots: the campaign's dots table (the images the fit does
+    not read may be left out).
     """
-    plates = plates_by_camera(metadata, CALIBRATION_STAGE)
+    targets = plates_by_camera(metadata, CALIBRATION_STAGE)
+    measured = plates_by_camera(metadata)
     tables, models = [], {}
     for camera, nominal in nominal_cameras(metadata).items():
-        views = trial_views(dots, images, camera, plates[camera])
+        views = trial_views(dots, images, camera, targets[camera])
         if not views:
             continue
         cal = calibrate_camera(views, nominal, camera=camera, fix_k3=FIX_K3)
-        joint = pd.DataFrame([cal.joint.to_row()], columns=cal.trials.columns)
-        tables.append(pd.concat([cal.trials, joint], ignore_index=True))
+        joint = cal.joint
         if cal.best_estimate is not None:
-            models[camera] = cal.best_estimate
+            used = set(joint.image_ids)
+            calibration = [(o, m) for objs, imgs, ids in views.values()
+                           for o, m, i in zip(objs, imgs, ids, strict=True) if i in used]
+            extra = machine_views(dots, images, camera, measured[camera]) if camera in measured else []
+            refined = refine_intrinsics(calibration + extra, cal.best_estimate, fix_k3=FIX_K3)
+            if refined.ok:
+                joint = refined
+                models[camera] = refined.camera_model(cal.best_estimate)
+            else:
+                models[camera] = cal.best_estimate
+        row = pd.DataFrame([joint.to_row()], columns=cal.trials.columns)
+        tables.append(pd.concat([cal.trials, row], ignore_index=True))
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     return table, models
 

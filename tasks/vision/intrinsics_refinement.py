@@ -33,9 +33,12 @@ from tasks.machine.camera_model import CameraModel
 from tasks.vision.camera_calibration import TrialResult
 from tasks.vision.intrinsics_uncertainty import intrinsics_vector, reduced_view
 
-MAX_ITERATIONS = 10
+MAX_ITERATIONS = 20
 STEP_TOLERANCE = 1e-3
 """Converged when no intrinsic moves by more than this many of its standard deviations."""
+OUTLIER_FACTOR, OUTLIER_FLOOR_PX = 10.0, 0.5
+"""A view whose PnP leaves an RMS above both OUTLIER_FACTOR × the views' median and OUTLIER_FLOOR_PX
+(a pose on the wrong branch of a planar target's two-fold ambiguity) is left out of the step."""
 
 
 def with_intrinsics(camera: CameraModel, theta: np.ndarray) -> CameraModel:
@@ -44,50 +47,57 @@ def with_intrinsics(camera: CameraModel, theta: np.ndarray) -> CameraModel:
                    cy_px=float(theta[2]), distortion=tuple(float(t) for t in theta[3:8]))
 
 
+def _linearised(views: Sequence[tuple[np.ndarray, np.ndarray]], camera: CameraModel):
+    """(reduced normal matrix (8, 8), pull (8,), Σ|r|², observations, views) over the views that
+    PnP poses without an outlying RMS."""
+    reduced = [v for v in (reduced_view(o, m, camera) for o, m in views) if v is not None]
+    rms = np.array([np.sqrt(np.mean(r**2)) for _, r in reduced])
+    keep = rms <= max(OUTLIER_FACTOR * float(np.median(rms)), OUTLIER_FLOOR_PX) if len(rms) else rms > 0
+    kept = [v for v, k in zip(reduced, keep, strict=True) if k]
+    normal = sum((J.T @ J for J, _ in kept), np.zeros((8, 8)))
+    pull = sum((J.T @ r for J, r in kept), np.zeros(8))
+    return normal, pull, float(sum(r @ r for _, r in kept)), sum(r.size for _, r in kept), len(kept)
+
+
 def refine_intrinsics(views: Sequence[tuple[np.ndarray, np.ndarray]], camera: CameraModel, *,
                       fix_k3: bool = False, trial: str = "joint") -> TrialResult:
     """The intrinsics that minimise the reprojection error of all ``views``, started from ``camera``.
 
     views: [(object points (K, 3) mm, image points (K, 2) px; NaN rows skipped)], each with its own
     free pose. camera: the start (a self-calibration's best estimate; sensor, pitch and name are kept).
-    fix_k3: hold k3 at the start's value. Returns a :class:`TrialResult` as a joint OpenCV fit gives
-    it (one focal length; per-image extrinsics not kept), with status ``failed`` when the views do not
-    determine the intrinsics; std_intrinsics are σ̂² × the inverse reduced normal matrix (OpenCV's
-    convention), σ̂² = Σ|r|²/(2N − p), p = free intrinsics + 6 per view.
+    fix_k3: hold k3 at the start's value. A step that raises the reprojection error is halved. Returns
+    a :class:`TrialResult` as a joint OpenCV fit gives it (one focal length; per-image extrinsics not
+    kept), with status ``failed`` when the views do not determine the intrinsics; std_intrinsics are
+    σ̂² × the inverse reduced normal matrix (OpenCV's convention), σ̂² = Σ|r|²/(2N − p), p = free
+    intrinsics + 6 per view.
     """
     size = (camera.width_px, camera.height_px)
     free = np.arange(7 if fix_k3 else 8)
     theta = intrinsics_vector(camera).astype(float)
+    step, best = np.zeros(len(free)), np.inf
     for _ in range(MAX_ITERATIONS):
-        model = with_intrinsics(camera, theta)
-        normal, pull, sum_sq, n_obs, n_views = np.zeros((8, 8)), np.zeros(8), 0.0, 0, 0
-        for obj, img in views:
-            view = reduced_view(obj, img, model)
-            if view is None:
-                continue
-            J, r = view
-            normal += J.T @ J
-            pull += J.T @ r
-            sum_sq += float(r @ r)
-            n_obs += r.size
-            n_views += 1
+        normal, pull, sum_sq, n_obs, n_views = _linearised(views, with_intrinsics(camera, theta))
         N = normal[np.ix_(free, free)]
         if n_views < 2 or not np.all(np.isfinite(N)) or np.linalg.cond(N) > 1e14:
             return TrialResult(camera.name, trial, "failed", f"{n_views} views do not determine the intrinsics", size,
                                n_images=n_views)
+        if sum_sq > best:  # the last step overshot: go back half of it
+            step /= 2
+            theta[free] -= step
+            continue
+        best = sum_sq
         step = np.linalg.solve(N, pull[free])
         theta[free] += step
         unit_sd = np.sqrt(np.diag(np.linalg.inv(N)) * sum_sq / max(n_obs - len(free) - 6 * n_views, 1))
         if np.all(np.abs(step) <= STEP_TOLERANCE * unit_sd):
             break
-    model = with_intrinsics(camera, theta)
     n_params = len(free) + 6 * n_views
     sigma2 = sum_sq / max(n_obs - n_params, 1)
     sd = np.zeros(8)
     sd[free] = np.sqrt(np.diag(np.linalg.inv(N)) * sigma2)
-    K = model.matrix
+    model = with_intrinsics(camera, theta)
     return TrialResult(camera.name, trial, "ok", f"{n_views} views, the machine's images included", size,
                        n_images=n_views, n_points=n_obs // 2, rms_px=float(np.sqrt(sum_sq / (n_obs // 2))),
-                       sigma_px=float(np.sqrt(sigma2)), camera_matrix=np.asarray(K, float),
+                       sigma_px=float(np.sqrt(sigma2)), camera_matrix=np.asarray(model.matrix, float),
                        dist_coeffs=np.asarray(model.dist_coeffs, float).ravel()[:5],
                        std_intrinsics=np.r_[sd[0], sd[0], sd[1:]], n_params=n_params)

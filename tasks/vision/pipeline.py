@@ -35,7 +35,13 @@ from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE, COMMAND_COLUMNS, Machine, machine_from_dict, plate_seen
 from tasks.machine.kinematics import forward
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_calibration import calibrate_camera, machine_views, nominal_camera, trial_views
+from tasks.vision.camera_calibration import (
+    MACHINE_STAGES,
+    calibrate_camera,
+    machine_views,
+    nominal_camera,
+    trial_views,
+)
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.grid_order import rotation_deg
 from tasks.vision.detection.perspective import project
@@ -53,6 +59,11 @@ the r⁶ term extrapolates into the part of the field that the X sweep's ends us
 about y read there by PnP was off by up to 64″ at X = ±25 mm, which became X's εy profile (and a
 true −0.041 is 1.8·10⁻⁵ of the radius at the field's corner: 0.008 px at the demo size, 0.03 px at
 full size). ``bench/x_sweep_tilt.py`` measures it."""
+SELF_CALIBRATION_STAGES = (CALIBRATION_STAGE, *MACHINE_STAGES)
+"""The stages whose images :func:`calibrate_cameras` reads."""
+SELF_CALIBRATION_VERSION = "self-calibration-2"
+"""Part of the self-calibration's cache key (with VISION_CODE_VERSION, which also keys detection):
+bump when :func:`calibrate_cameras` would return something else for the same dots."""
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
 PRIOR_COLUMNS = tuple(f"prior_h{i}{j}" for i in range(3) for j in range(3))
 """Columns of the predicted plate → image homography that detection takes (:func:`with_detection_inputs`)."""

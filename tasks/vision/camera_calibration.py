@@ -43,7 +43,7 @@ MIN_POINTS_PER_IMAGE = 8
 MIN_IMAGES = 4
 """Fewest valid images for a trial; below it the trial gets status ``too_few_images``."""
 MACHINE_STAGES = ("pdge", "pige")
-"""Stages whose images of a camera's measured plate also refine its intrinsics (:func:`machine_views`)."""
+"""Stages whose images of a camera's measured plate may also refine its intrinsics (:func:`machine_views`)."""
 DISTORTION_LIMIT = 0.4
 """The seed's bound on |k1|…|k3| (§5.2), checked in the summary."""
 CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -336,14 +336,15 @@ def trial_views(dots: pd.DataFrame, manifest: pd.DataFrame, camera: str, plate: 
             for group, rows in sorted(sel.groupby("group").indices.items())}
 
 
-def machine_views(dots: pd.DataFrame, manifest: pd.DataFrame, camera: str, plate: DotPlate
-                  ) -> list[tuple[np.ndarray, np.ndarray]]:
+def machine_views(dots: pd.DataFrame, manifest: pd.DataFrame, camera: str, plate: DotPlate,
+                  sweeps: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
     """[(object points (K, 3) mm, image points (K, 2) px; NaN where a dot was not found)] of the
-    camera's images of the plate it measures (``plate``) in the machine's sweeps and five-axis
-    poses (:data:`MACHINE_STAGES`; the validation poses are kept out), from the long dots table."""
-    return [(o, m) for stage in MACHINE_STAGES
-            for objs, imgs, _ in trial_views(dots, manifest, camera, plate, stage).values()
-            for o, m in zip(objs, imgs, strict=True)]
+    camera's images of the plate it measures (``plate``) in the PDGE sweeps of the axes ``sweeps``
+    and in the five-axis poses (the validation poses are kept out), from the long dots table."""
+    sweep_views = trial_views(dots, manifest, camera, plate, "pdge")
+    groups = [sweep_views[a] for a in sweeps if a in sweep_views]
+    groups += list(trial_views(dots, manifest, camera, plate, "pige").values())
+    return [(o, m) for objs, imgs, _ in groups for o, m in zip(objs, imgs, strict=True)]
 
 
 # --------------------------------------------------------------------------------------------

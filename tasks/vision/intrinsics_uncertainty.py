@@ -116,18 +116,19 @@ def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera
 
 
 def intrinsics_covariances(dots: pd.DataFrame, images: pd.DataFrame, cameras: Mapping[str, CameraModel],
-                           targets: Mapping[str, DotPlate], measured: Mapping[str, DotPlate] | None = None
-                           ) -> dict[str, np.ndarray]:
+                           targets: Mapping[str, DotPlate], measured: Mapping[str, DotPlate] | None = None,
+                           sweeps: Sequence[str] = ()) -> dict[str, np.ndarray]:
     """{camera: (8, 8) :func:`intrinsics_covariance`} of each camera's joint self-calibration from
     its ``camera_calibration`` images of its target (``targets``) and, with ``measured`` ({camera:
-    the plate it measures}), the machine's images of that plate that refine it
-    (:func:`tasks.vision.camera_calibration.machine_views`; the ``dots`` and ``images`` lake tables)."""
+    the plate it measures}), the machine's images of that plate in the sweeps of the axes ``sweeps``
+    and the five-axis poses, which refine it (:func:`tasks.vision.camera_calibration.machine_views`;
+    the ``dots`` and ``images`` lake tables)."""
     out = {}
     for cam, model in cameras.items():
         views = [(o, m) for objs, imgs, _ in trial_views(dots, images, cam, targets[cam]).values()
                  for o, m in zip(objs, imgs, strict=True)]
         if measured is not None and cam in measured:
-            views += machine_views(dots, images, cam, measured[cam])
+            views += machine_views(dots, images, cam, measured[cam], sweeps)
         out[cam] = intrinsics_covariance(views, model)
     return out
 

@@ -227,15 +227,17 @@ def calibrate_cameras(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
     estimate refined on the machine's images of the plate the camera measures.
 
     The trials are fitted on the calibration views alone (Table 3); the joint best estimate is then
-    refined on those views and the camera's images in the sweeps and five-axis poses
-    (:func:`tasks.vision.camera_calibration.machine_views`, each view with a free pose;
-    :mod:`tasks.vision.intrinsics_refinement` says why). Returns the camera_calibration table (one
-    row per trial and a "joint" row per camera: the best estimate and the views it was fitted on)
-    and {camera: calibrated intrinsics}. dots: the campaign's dots table (the images the fit does
-    not read may be left out).
+    refined on those views and the camera's images of its measured plate in the linear axes' sweeps
+    and the five-axis poses (:func:`tasks.vision.camera_calibration.machine_views`, each view with a
+    free pose; :mod:`tasks.vision.intrinsics_refinement` says why). A camera without such images
+    (camera 2: the A sweep turns plate b about the field's centre) keeps the joint fit. Returns the
+    camera_calibration table (one row per trial and a "joint" row per camera: the best estimate and
+    the views it was fitted on) and {camera: calibrated intrinsics}. dots: the campaign's dots
+    table (the images the fit does not read may be left out).
     """
     targets = plates_by_camera(metadata, CALIBRATION_STAGE)
     measured = plates_by_camera(metadata)
+    sweeps = nominal_machine(metadata).linear_axes
     tables, models = [], {}
     for camera, nominal in nominal_cameras(metadata).items():
         views = trial_views(dots, images, camera, targets[camera])
@@ -244,16 +246,16 @@ def calibrate_cameras(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
         cal = calibrate_camera(views, nominal, camera=camera, fix_k3=FIX_K3)
         joint = cal.joint
         if cal.best_estimate is not None:
-            used = set(joint.image_ids)
-            calibration = [(o, m) for objs, imgs, ids in views.values()
-                           for o, m, i in zip(objs, imgs, ids, strict=True) if i in used]
-            extra = machine_views(dots, images, camera, measured[camera]) if camera in measured else []
-            refined = refine_intrinsics(calibration + extra, cal.best_estimate, fix_k3=FIX_K3)
-            if refined.ok:
-                joint = refined
-                models[camera] = refined.camera_model(cal.best_estimate)
-            else:
-                models[camera] = cal.best_estimate
+            models[camera] = cal.best_estimate
+            extra = machine_views(dots, images, camera, measured[camera], sweeps) if camera in measured else []
+            if extra:
+                used = set(joint.image_ids)
+                calibration = [(o, m) for objs, imgs, ids in views.values()
+                               for o, m, i in zip(objs, imgs, ids, strict=True) if i in used]
+                refined = refine_intrinsics(calibration + extra, cal.best_estimate, fix_k3=FIX_K3)
+                if refined.ok:
+                    joint = refined
+                    models[camera] = refined.camera_model(cal.best_estimate)
         row = pd.DataFrame([joint.to_row()], columns=cal.trials.columns)
         tables.append(pd.concat([cal.trials, row], ignore_index=True))
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()

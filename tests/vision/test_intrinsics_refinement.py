@@ -114,13 +114,16 @@ def test_exact_views_refine_to_the_truth(machine):
                                rtol=0, atol=1e-6)
 
 
-def test_machine_views_take_the_sweeps_and_five_axis_poses_of_the_measured_plate(tiny_campaign):
-    """From the long dots table: the camera's pdge and pige images, not its calibration or validation ones."""
+def test_machine_views_take_the_named_sweeps_and_five_axis_poses_of_the_measured_plate(tiny_campaign):
+    """From the long dots table: the camera's images in the X and Y sweeps and the five-axis poses,
+    not in its calibration views, other sweeps or validation poses."""
     dots = pd.read_parquet(tiny_campaign / "truth" / "dots.parquet")
     manifest = pd.read_csv(tiny_campaign / "manifest.csv")
     plate = load_machine("prototype").plates["plate_a"]
-    views = machine_views(dots, manifest, "camera1", plate)
-    mine = manifest[(manifest.camera == "camera1") & manifest.stage.isin(["pdge", "pige"])]
+    views = machine_views(dots, manifest, "camera1", plate, ("X", "Y"))
+    mine = manifest[(manifest.camera == "camera1") & ((manifest.stage == "pige")
+                                                      | ((manifest.stage == "pdge") & manifest.group.isin(["X", "Y"])))]
+    assert set(manifest.stage) > {"pige", "pdge", "validation"} and set(manifest.group) > {"X", "Y", "Z"}
     assert len(views) == len(mine) > 0
     assert all(o.shape == (49, 3) and m.shape == (49, 2) for o, m in views)
     assert all(np.array_equal(o, plate.dot_centres_mm()) for o, _ in views)

@@ -36,6 +36,8 @@ from tasks.vision.intrinsics_uncertainty import intrinsics_vector, reduced_view
 MAX_ITERATIONS = 20
 STEP_TOLERANCE = 1e-3
 """Converged when no intrinsic moves by more than this many of its standard deviations."""
+OVERSHOOT = 1e-6
+"""A step overshot when it raises Σ|r|² by more than this fraction (below it: PnP's own tolerance)."""
 OUTLIER_FACTOR, OUTLIER_FLOOR_PX = 10.0, 0.5
 """A view whose PnP leaves an RMS above both OUTLIER_FACTOR × the views' median and OUTLIER_FLOOR_PX
 (a pose on the wrong branch of a planar target's two-fold ambiguity) is left out of the step."""
@@ -81,7 +83,7 @@ def refine_intrinsics(views: Sequence[tuple[np.ndarray, np.ndarray]], camera: Ca
         if n_views < 2 or not np.all(np.isfinite(N)) or np.linalg.cond(N) > 1e14:
             return TrialResult(camera.name, trial, "failed", f"{n_views} views do not determine the intrinsics", size,
                                n_images=n_views)
-        if sum_sq > best:  # the last step overshot: go back half of it
+        if sum_sq > best * (1 + OVERSHOOT):  # the last step overshot: go back half of it
             step /= 2
             theta[free] -= step
             continue

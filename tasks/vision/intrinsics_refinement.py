@@ -34,7 +34,7 @@ from tasks.vision.camera_calibration import TrialResult
 from tasks.vision.intrinsics_uncertainty import intrinsics_vector, reduced_view
 
 MAX_ITERATIONS = 20
-STEP_TOLERANCE = 1e-3
+STEP_TOLERANCE = 1e-2
 """Converged when no intrinsic moves by more than this many of its standard deviations."""
 OVERSHOOT = 1e-6
 """A step overshot when it raises Σ|r|² by more than this fraction (below it: PnP's own tolerance)."""

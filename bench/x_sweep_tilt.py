@@ -4,10 +4,11 @@ four sets of intrinsics: the self-calibration views' joint fit with k3 free, wit
 plate a: ``tasks.vision.pipeline.calibrate_cameras``) and the true ones.
 
 For each seed, camera 1 is self-calibrated again from the campaign's ``dots`` (all three ways),
-every X and Y sweep image is posed by PnP from its detected dots, and the rotation of the measured T_cam_plate against the true one (``truth/images.parquet``)
-is averaged per sweep position: about y for the X sweep (X's εy), about x for the Y sweep (Y's
-εx). The per-position means are smoothed by a cubic in the position and referred to home, as the
-PDGE profiles are; printed: its RMS over the sweep and its values at the two ends (arcsec).
+every X and Y sweep image is posed by PnP from its detected dots, and the rotation of the measured
+T_cam_plate against the true one (``truth/images.parquet``) is averaged per sweep position: about y
+for the X sweep (X's εy), about x for the Y sweep (Y's εx). The per-position means are smoothed by a
+cubic in the position and referred to home, as the PDGE profiles are; printed: its RMS over the
+sweep and its values at the two ends (arcsec).
 
     python bench/x_sweep_tilt.py --seeds 10 67 --campaigns /work/panel/small --results RESULTS
 

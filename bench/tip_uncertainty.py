@@ -77,7 +77,8 @@ def seed_check(campaign: Path, root: Path) -> dict:
     c = read_measured_campaign(campaign, str(root))
     truth_cameras = json.loads((campaign / "truth" / "truth.json").read_text())["cameras"]
     result = calibrate(c.machine, c.measurements, c.truth)
-    covs = intrinsics_covariances(c.dots, c.images, c.cameras, plates_of(c.machine, CALIBRATION_STAGE))
+    covs = intrinsics_covariances(c.dots, c.images, c.cameras, plates_of(c.machine, CALIBRATION_STAGE),
+                                  plates_of(c.machine), c.machine.linear_axes)
     sens = pose_sensitivities(c.dots, c.measurements.table["image_id"].tolist(), c.measurements.T, c.cameras,
                               plates_of(c.machine), c.measurements.table["camera"].tolist())
     prop = propagate_uncertainty(c.machine, result, c.measurements, sens, covs)

@@ -1,13 +1,14 @@
 """The plate tilt that camera 1 reads along the X and Y sweeps, against the simulator's truth, for
-three sets of intrinsics: the self-calibration with k3 free, with k3 held at 0 (``tasks.vision.pipeline.FIX_K3``),
-and the true ones.
+four sets of intrinsics: the self-calibration views' joint fit with k3 free, with k3 held at 0
+(``tasks.vision.pipeline.FIX_K3``), the pipeline's (the held-k3 fit refined on the machine's images of
+plate a: ``tasks.vision.pipeline.calibrate_cameras``) and the true ones.
 
-For each seed, camera 1 is self-calibrated again from the campaign's ``dots`` of its
-camera_calibration views (both ways), every X and Y sweep image is posed by PnP from its detected
-dots, and the rotation of the measured T_cam_plate against the true one (``truth/images.parquet``)
-is averaged per sweep position: about y for the X sweep (X's εy), about x for the Y sweep (Y's
-εx). The per-position means are smoothed by a cubic in the position and referred to home, as the
-PDGE profiles are; printed: its RMS over the sweep and its values at the two ends (arcsec).
+For each seed, camera 1 is self-calibrated again from the campaign's ``dots`` (all three ways),
+every X and Y sweep image is posed by PnP from its detected dots, and the rotation of the measured
+T_cam_plate against the true one (``truth/images.parquet``) is averaged per sweep position: about y
+for the X sweep (X's εy), about x for the Y sweep (Y's εx). The per-position means are smoothed by a
+cubic in the position and referred to home, as the PDGE profiles are; printed: its RMS over the
+sweep and its values at the two ends (arcsec).
 
     python bench/x_sweep_tilt.py --seeds 10 67 --campaigns /work/panel/small --results RESULTS
 
@@ -29,7 +30,7 @@ from tasks.lake.store import read_table
 from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE
 from tasks.vision.camera_calibration import calibrate_camera, trial_views
-from tasks.vision.pipeline import campaign_plates, nominal_cameras, plates_by_camera
+from tasks.vision.pipeline import calibrate_cameras, campaign_plates, nominal_cameras, plates_by_camera
 from tasks.vision.poses import estimate_poses
 
 POSE_COLUMNS = [f"T{i}{j}" for i in range(3) for j in range(4)]
@@ -67,6 +68,7 @@ def seed_row(campaign: Path, results: Path) -> dict:
     nominal = nominal_cameras(meta)["camera1"]
     cameras = {"k3 free": calibrate_camera(views, nominal, camera="camera1").best_estimate,
                "k3 = 0": calibrate_camera(views, nominal, camera="camera1", fix_k3=True).best_estimate,
+               "refined": calibrate_cameras(dots, images, meta)[1]["camera1"],
                "true": CameraModel(**{**truth, "distortion": tuple(truth["distortion"])})}
     plate = campaign_plates(meta)["plate_a"]
     row = {"campaign": cid}

@@ -15,9 +15,9 @@ from flows.runners import image_task_runner, subflow_task_runner
 from tasks.campaign.ingest import load_campaign_metadata
 from tasks.core.version import FIVECAL_VERSION
 from tasks.lake.store import write_partitions
-from tasks.machine.description import CALIBRATION_STAGE
 from tasks.steps.vision import calibrate, detect_chunk, poses, read_images
 from tasks.vision.pipeline import (
+    SELF_CALIBRATION_STAGES,
     campaign_plates,
     check_detections,
     content_key,
@@ -53,8 +53,8 @@ def measure_campaign(campaign: str, results_root: str | None = None, detector: s
     detections = pd.concat([r[1] for r in results], ignore_index=True)
     check_detections(folder, detections, plates)  # plates that are not the ones imaged: refused here
 
-    # only the calibration views' dots: all that the fit reads (and hashes for its cache key)
-    calibration_ids = images.loc[images["stage"] == CALIBRATION_STAGE, "image_id"]
+    # only the dots of the images the fit reads (and hashes for its cache key)
+    calibration_ids = images.loc[images["stage"].isin(SELF_CALIBRATION_STAGES), "image_id"]
     cal_future = calibrate.submit(dots[dots["image_id"].isin(calibration_ids)], images, metadata)
     calibration, cameras = cal_future.result()
     cached["calibrate"] = int(cal_future.state.name == "Cached")

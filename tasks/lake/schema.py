@@ -353,7 +353,9 @@ _TABLES = (
         _s("detector", "rrht | blob | hough"))),
     TableSchema("camera_calibration", 1, "self-calibration trial per camera, plus a 'joint' row per camera",
                 "tasks/steps/vision.py (fivecal measure)", (PARTITION, "camera", "trial"), (
-        _s("camera", "camera name"), _s("trial", "trial name, or 'joint': the best estimate fitted on every view"),
+        _s("camera", "camera name"),
+        _s("trial", "trial name, or 'joint': the best estimate, fitted on every calibration view and the camera's "
+                    "views of its measured plate in the linear axes' sweeps and the five-axis poses"),
         _STATUS, _MESSAGE,
         _i("n_images", "views used"), _i("n_points", "dot centres used"),
         _c("rms_px", "float64", "px", IMAGE, "OpenCV reprojection RMS sqrt(Σ|r|²/N) (Table 3)"),

@@ -93,6 +93,11 @@ class Machine:
     source: dict = field(default_factory=dict, compare=False, repr=False)
     calibration_targets: dict[str, str] = field(default_factory=dict)  # camera -> plate it self-calibrates on
 
+    @property
+    def linear_axes(self) -> tuple[str, ...]:
+        """Names of the linear axes, in the description's order."""
+        return tuple(name for name, axis in self.axes.items() if not axis.is_rotary)
+
     def plate_seen(self, camera: str, stage: str) -> str:
         """Name of the plate ``camera`` sees in an image of campaign ``stage`` (:func:`plate_seen`)."""
         return plate_seen(self.views, self.calibration_targets, camera, stage)

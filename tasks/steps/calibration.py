@@ -76,7 +76,7 @@ def propagate_task(machine: Machine, measurements: Measurements, result: Calibra
     (the intrinsics; its content keys the cache). dots, images: the lake tables the intrinsics'
     covariance and the poses' sensitivities are computed from. plates: {camera: the plate it measures};
     targets: {camera: the plate of its self-calibration views}."""
-    covs = intrinsics_covariances(dots, images, cameras, targets)
+    covs = intrinsics_covariances(dots, images, cameras, targets, plates, machine.linear_axes)
     sens = pose_sensitivities(dots, measurements.table["image_id"].tolist(), measurements.T, cameras, plates,
                               measurements.table["camera"].tolist())
     return propagate_uncertainty(machine, result, measurements, sens, covs, draws=draws)

@@ -31,9 +31,17 @@ from threadpoolctl import threadpool_limits
 
 from tasks.lake.store import read_table
 from tasks.machine.camera_model import CameraModel
-from tasks.machine.description import CALIBRATION_STAGE
 from tasks.machine.plate import DotPlate
-from tasks.vision.pipeline import FIX_K3, PRIOR_COLUMNS, calibrate_cameras, content_key, detect_images, plate_poses
+from tasks.vision.pipeline import (
+    FIX_K3,
+    PRIOR_COLUMNS,
+    SELF_CALIBRATION_STAGES,
+    SELF_CALIBRATION_VERSION,
+    calibrate_cameras,
+    content_key,
+    detect_images,
+    plate_poses,
+)
 
 _numeric_lock = threading.Lock()
 _numeric_users = 0
@@ -73,11 +81,12 @@ def _detect_key(context: TaskRunContext, p: dict[str, Any]) -> str:
 
 
 def _calibrate_key(context: TaskRunContext, p: dict[str, Any]) -> str:
-    cal_ids = p["images"].loc[p["images"]["stage"] == CALIBRATION_STAGE, "image_id"]
+    cal_ids = p["images"].loc[p["images"]["stage"].isin(SELF_CALIBRATION_STAGES), "image_id"]
     dots = p["dots"][p["dots"]["image_id"].isin(cal_ids)]
     groups = p["images"][["image_id", "camera", "stage", "group"]]
     return "calibrate-" + content_key(dots, groups, p["metadata"]["cameras"], p["metadata"]["plates"],
-                                      p["metadata"].get("calibration_targets", {}), {"fix_k3": FIX_K3})
+                                      p["metadata"]["views"], p["metadata"].get("calibration_targets", {}),
+                                      {"fix_k3": FIX_K3, "version": SELF_CALIBRATION_VERSION})
 
 
 def _poses_key(context: TaskRunContext, p: dict[str, Any]) -> str:

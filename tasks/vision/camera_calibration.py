@@ -42,6 +42,8 @@ MIN_POINTS_PER_IMAGE = 8
 """An image enters a calibration with at least this many finite dot centres (partial views allowed)."""
 MIN_IMAGES = 4
 """Fewest valid images for a trial; below it the trial gets status ``too_few_images``."""
+MACHINE_STAGES = ("pdge", "pige")
+"""Stages whose images of a camera's measured plate may also refine its intrinsics (:func:`machine_views`)."""
 DISTORTION_LIMIT = 0.4
 """The seed's bound on |k1|…|k3| (§5.2), checked in the summary."""
 CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -314,31 +316,35 @@ def table3(calibrations: Sequence[CameraCalibration] | pd.DataFrame) -> pd.DataF
     return wide
 
 
-def trial_views(dots: pd.DataFrame, manifest: pd.DataFrame, camera: str, plate: DotPlate) -> dict[str, tuple]:
+def trial_views(dots: pd.DataFrame, manifest: pd.DataFrame, camera: str, plate: DotPlate,
+                stage: str = CALIBRATION_STAGE) -> dict[str, tuple]:
     """Calibration inputs of one camera from a long table of dot centres.
 
     dots: image_id, row, col, u_px, v_px (NaN for missing dots). manifest: image_id, camera,
     stage, group (docs/campaign-format.md). Returns {trial (group): (object points, image
-    points, image ids)} for the camera's ``camera_calibration`` images, dots in plate order.
+    points, image ids)} for the camera's images of ``stage`` (its ``camera_calibration`` views by
+    default), dots in plate order.
     """
-    sel = manifest[(manifest["camera"] == camera) & (manifest["stage"] == CALIBRATION_STAGE)]
+    sel = manifest[(manifest["camera"] == camera) & (manifest["stage"] == stage)].reset_index(drop=True)
     centres = plate.dot_centres_mm()
-    n = plate.rows * plate.cols
-    by_image = {k: g for k, g in dots[dots["image_id"].isin(sel["image_id"])].groupby("image_id")}
-    out: dict[str, tuple] = {}
-    for group, g in sel.groupby("group", sort=True):
-        obj, img, ids = [], [], []
-        for image_id in g["image_id"]:
-            uv = np.full((n, 2), np.nan)
-            d = by_image.get(image_id)
-            if d is not None:
-                idx = d["row"].to_numpy() * plate.cols + d["col"].to_numpy()
-                uv[idx] = d[["u_px", "v_px"]].to_numpy(dtype=float)
-            obj.append(centres)
-            img.append(uv)
-            ids.append(image_id)
-        out[str(group)] = (obj, img, ids)
-    return out
+    d = dots[dots["image_id"].isin(sel["image_id"])]
+    uv = np.full((len(sel), plate.rows * plate.cols, 2), np.nan)
+    uv[pd.Index(sel["image_id"]).get_indexer(d["image_id"]),
+       d["row"].to_numpy() * plate.cols + d["col"].to_numpy()] = d[["u_px", "v_px"]].to_numpy(dtype=float)
+    ids = sel["image_id"].to_numpy()
+    return {str(group): ([centres] * len(rows), list(uv[rows]), ids[rows].tolist())
+            for group, rows in sorted(sel.groupby("group").indices.items())}
+
+
+def machine_views(dots: pd.DataFrame, manifest: pd.DataFrame, camera: str, plate: DotPlate,
+                  sweeps: Sequence[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[(object points (K, 3) mm, image points (K, 2) px; NaN where a dot was not found)] of the
+    camera's images of the plate it measures (``plate``) in the PDGE sweeps of the axes ``sweeps``
+    and in the five-axis poses (the validation poses are kept out), from the long dots table."""
+    sweep_views = trial_views(dots, manifest, camera, plate, "pdge")
+    groups = [sweep_views[a] for a in sweeps if a in sweep_views]
+    groups += list(trial_views(dots, manifest, camera, plate, "pige").values())
+    return [(o, m) for objs, imgs, _ in groups for o, m in zip(objs, imgs, strict=True)]
 
 
 # --------------------------------------------------------------------------------------------

@@ -2,7 +2,7 @@
 
 SYNOPSIS
     >>> cov = intrinsics_covariance(views, camera)            # (8, 8) of INTRINSIC_PARAMETERS
-    >>> covs = intrinsics_covariances(dots, images, cameras, plates)   # {camera: (8, 8)}
+    >>> covs = intrinsics_covariances(dots, images, cameras, targets, plates)   # {camera: (8, 8)}
     >>> S = pose_sensitivities(dots, image_ids, T, cameras, plates)   # (N, 6, 8)
     >>> T_shifted = T @ se3.exp(S @ d_theta)                  # the poses under other intrinsics
 
@@ -36,7 +36,7 @@ import pandas as pd
 
 from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_calibration import trial_views
+from tasks.vision.camera_calibration import machine_views, trial_views
 from tasks.vision.poses import estimate_pose, pose_jacobian
 
 INTRINSIC_PARAMETERS = ("f_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3")
@@ -58,6 +58,24 @@ def intrinsics_jacobian(object_points_mm: np.ndarray, T_cam_plate: np.ndarray, c
     return np.column_stack([jac[:, 6] + jac[:, 7], jac[:, 8:15]])
 
 
+def reduced_view(object_points_mm: np.ndarray, image_points_px: np.ndarray, camera: CameraModel
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+    """One view's intrinsics Jacobian with its own pose eliminated, J̃ = J_θ − J_g (J_gᵀ J_g)⁻¹ J_gᵀ J_θ
+    (2K, 8; θ in the order of INTRINSIC_PARAMETERS), and its residuals r (2K,) observed − projected
+    (px), both at the view's PnP pose with ``camera`` over its K finite dot centres; None when no
+    pose is found. A change dθ of the intrinsics, the pose re-fitted, moves the residuals by −J̃ dθ."""
+    obj, img = np.asarray(object_points_mm, float), np.asarray(image_points_px, float)
+    ok = np.isfinite(img).all(axis=1)
+    pose = estimate_pose(obj[ok], img[ok], camera)
+    if not pose.ok:
+        return None
+    J_g = pose_jacobian(obj[ok], pose.T_cam_plate, camera).reshape(-1, 6)
+    J_t = intrinsics_jacobian(obj[ok], pose.T_cam_plate, camera)
+    reduced = J_t - J_g @ np.linalg.solve(J_g.T @ J_g, J_g.T @ J_t)
+    residuals = np.nan_to_num(np.asarray(pose.residuals_px, float).reshape(-1))  # NaN: a point the pose skipped
+    return reduced, residuals
+
+
 def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera: CameraModel,
                           robust: bool = True) -> np.ndarray:
     """(8, 8) covariance of θ (INTRINSIC_PARAMETERS) of a self-calibration from its ``views``.
@@ -77,16 +95,11 @@ def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera
     pulls = []
     sum_sq, n_obs = 0.0, 0
     for obj, img in views:
-        obj, img = np.asarray(obj, float), np.asarray(img, float)
-        ok = np.isfinite(img).all(axis=1)
-        pose = estimate_pose(obj[ok], img[ok], camera)
-        if not pose.ok:
+        view = reduced_view(obj, img, camera)
+        if view is None:
             continue
-        J_g = pose_jacobian(obj[ok], pose.T_cam_plate, camera).reshape(-1, 6)
-        J_t = intrinsics_jacobian(obj[ok], pose.T_cam_plate, camera)
-        reduced = J_t - J_g @ np.linalg.solve(J_g.T @ J_g, J_g.T @ J_t)  # the view's pose eliminated
+        reduced, residuals = view
         normal += reduced.T @ reduced
-        residuals = np.nan_to_num(np.asarray(pose.residuals_px, float).reshape(-1))  # NaN: a point the pose skipped
         pulls.append(reduced.T @ residuals)
         sum_sq += float(residuals @ residuals)
         n_obs += residuals.size
@@ -103,13 +116,19 @@ def intrinsics_covariance(views: Sequence[tuple[np.ndarray, np.ndarray]], camera
 
 
 def intrinsics_covariances(dots: pd.DataFrame, images: pd.DataFrame, cameras: Mapping[str, CameraModel],
-                           plates: Mapping[str, DotPlate]) -> dict[str, np.ndarray]:
+                           targets: Mapping[str, DotPlate], measured: Mapping[str, DotPlate] | None = None,
+                           sweeps: Sequence[str] = ()) -> dict[str, np.ndarray]:
     """{camera: (8, 8) :func:`intrinsics_covariance`} of each camera's joint self-calibration from
-    its ``camera_calibration`` images (the ``dots`` and ``images`` lake tables)."""
+    its ``camera_calibration`` images of its target (``targets``) and, with ``measured`` ({camera:
+    the plate it measures}), the machine's images of that plate in the sweeps of the axes ``sweeps``
+    and the five-axis poses, which refine it (:func:`tasks.vision.camera_calibration.machine_views`;
+    the ``dots`` and ``images`` lake tables)."""
     out = {}
     for cam, model in cameras.items():
-        views = [(o, m) for objs, imgs, _ in trial_views(dots, images, cam, plates[cam]).values()
+        views = [(o, m) for objs, imgs, _ in trial_views(dots, images, cam, targets[cam]).values()
                  for o, m in zip(objs, imgs, strict=True)]
+        if measured is not None and cam in measured:
+            views += machine_views(dots, images, cam, measured[cam], sweeps)
         out[cam] = intrinsics_covariance(views, model)
     return out
 

@@ -35,10 +35,17 @@ from tasks.machine.camera_model import CameraModel
 from tasks.machine.description import CALIBRATION_STAGE, COMMAND_COLUMNS, Machine, machine_from_dict, plate_seen
 from tasks.machine.kinematics import forward
 from tasks.machine.plate import DotPlate
-from tasks.vision.camera_calibration import calibrate_camera, nominal_camera, trial_views
+from tasks.vision.camera_calibration import (
+    MACHINE_STAGES,
+    calibrate_camera,
+    machine_views,
+    nominal_camera,
+    trial_views,
+)
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.grid_order import rotation_deg
 from tasks.vision.detection.perspective import project
+from tasks.vision.intrinsics_refinement import refine_intrinsics
 from tasks.vision.poses import estimate_poses
 
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
@@ -52,6 +59,11 @@ the r⁶ term extrapolates into the part of the field that the X sweep's ends us
 about y read there by PnP was off by up to 64″ at X = ±25 mm, which became X's εy profile (and a
 true −0.041 is 1.8·10⁻⁵ of the radius at the field's corner: 0.008 px at the demo size, 0.03 px at
 full size). ``bench/x_sweep_tilt.py`` measures it."""
+SELF_CALIBRATION_STAGES = (CALIBRATION_STAGE, *MACHINE_STAGES)
+"""The stages whose images :func:`calibrate_cameras` reads."""
+SELF_CALIBRATION_VERSION = "self-calibration-2"
+"""Part of the self-calibration's cache key (with VISION_CODE_VERSION, which also keys detection):
+bump when :func:`calibrate_cameras` would return something else for the same dots."""
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
 PRIOR_COLUMNS = tuple(f"prior_h{i}{j}" for i in range(3) for j in range(3))
 """Columns of the predicted plate → image homography that detection takes (:func:`with_detection_inputs`)."""
@@ -211,22 +223,41 @@ def detect_images(folder: Path, rows: pd.DataFrame, plates: Mapping[str, DotPlat
 
 def calibrate_cameras(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
                       ) -> tuple[pd.DataFrame, dict[str, CameraModel]]:
-    """Self-calibration of every camera from its camera_calibration views (§5.2, Table 3).
+    """Self-calibration of every camera from its camera_calibration views (§5.2, Table 3), its best
+    estimate refined on the machine's images of the plate the camera measures.
 
-    Returns the camera_calibration table (one row per trial and a "joint" row per camera: the
-    best estimate, fitted on every valid view) and {camera: calibrated intrinsics}.
+    The trials are fitted on the calibration views alone (Table 3); the joint best estimate is then
+    refined on those views and the camera's images of its measured plate in the linear axes' sweeps
+    and the five-axis poses (:func:`tasks.vision.camera_calibration.machine_views`, each view with a
+    free pose; :mod:`tasks.vision.intrinsics_refinement` says why). A camera without such images
+    (camera 2: the A sweep turns plate b about the field's centre) keeps the joint fit. Returns the
+    camera_calibration table (one row per trial and a "joint" row per camera: the best estimate and
+    the views it was fitted on) and {camera: calibrated intrinsics}. dots: the campaign's dots
+    table (the images the fit does not read may be left out).
     """
-    plates = plates_by_camera(metadata, CALIBRATION_STAGE)
+    targets = plates_by_camera(metadata, CALIBRATION_STAGE)
+    measured = plates_by_camera(metadata)
+    sweeps = nominal_machine(metadata).linear_axes
     tables, models = [], {}
     for camera, nominal in nominal_cameras(metadata).items():
-        views = trial_views(dots, images, camera, plates[camera])
+        views = trial_views(dots, images, camera, targets[camera])
         if not views:
             continue
         cal = calibrate_camera(views, nominal, camera=camera, fix_k3=FIX_K3)
-        joint = pd.DataFrame([cal.joint.to_row()], columns=cal.trials.columns)
-        tables.append(pd.concat([cal.trials, joint], ignore_index=True))
+        joint = cal.joint
         if cal.best_estimate is not None:
             models[camera] = cal.best_estimate
+            extra = machine_views(dots, images, camera, measured[camera], sweeps) if camera in measured else []
+            if extra:
+                used = set(joint.image_ids)
+                calibration = [(o, m) for objs, imgs, ids in views.values()
+                               for o, m, i in zip(objs, imgs, ids, strict=True) if i in used]
+                refined = refine_intrinsics(calibration + extra, cal.best_estimate, fix_k3=FIX_K3)
+                if refined.ok:
+                    joint = refined
+                    models[camera] = refined.camera_model(cal.best_estimate)
+        row = pd.DataFrame([joint.to_row()], columns=cal.trials.columns)
+        tables.append(pd.concat([cal.trials, row], ignore_index=True))
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     return table, models
 

@@ -27,19 +27,23 @@ from tasks.vision.pipeline import nominal_machine
 class LakeCalibration:
     """campaign_id, the ``pige`` table's provenance (``effects``, ``effect_modules``,
     ``orientation_objective``, ...), the nominal machine, the measurements (mm, rad; camera frames),
-    the calibrated intrinsics per camera, the identified model, for a simulated campaign its
-    truth.json and true error model (None for a lab's campaign), and calibrate's whole
-    identification result (what its uncertainty is propagated for)."""
+    the calibrated intrinsics per camera, calibrate's identification result (its model, and what
+    its uncertainty is propagated for), and for a simulated campaign its truth.json and true error
+    model (None for a lab's campaign)."""
 
     campaign_id: str
     provenance: dict
     machine: Machine
     measurements: Measurements
     cameras: dict[str, CameraModel]
-    model: ErrorModel
+    result: CalibrationResult
     truth_doc: dict | None
     truth: ErrorModel | None
-    result: CalibrationResult | None = None
+
+    @property
+    def model(self) -> ErrorModel:
+        """The identified error model."""
+        return self.result.model
 
     @property
     def simulated(self) -> bool:
@@ -76,5 +80,4 @@ def calibration_from_lake(campaign: Path, root: Path | None, effect_modules: lis
     base = ErrorModel(effects=recorded_effects(provenance.get("effects", []), provenance.get("effect_modules", []),
                                                effect_modules))
     result = identify_task.submit(machine, measurements, truth, base).result()
-    return LakeCalibration(campaign_id, provenance, machine, measurements, cameras, result.model, truth_doc, truth,
-                           result)
+    return LakeCalibration(campaign_id, provenance, machine, measurements, cameras, result, truth_doc, truth)

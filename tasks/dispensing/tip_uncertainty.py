@@ -106,8 +106,9 @@ def after_tip_uncertainty(machine: Machine, model: ErrorModel, prop: PropagatedU
     covariance of the offset (µm², tip frame: :attr:`tasks.dispensing.tip.TipFit.covariance_um2`)."""
     fit_commands = np.asarray(fit_commands, dtype=float)
     cov_t = np.asarray(fit_covariance_um2, dtype=float)
-    camera = after_tip_changes(machine, model, prop.camera_models, fit_commands, commands)
-    noise = after_tip_changes(machine, model, prop.noise_models, fit_commands, commands)
+    n_camera = len(prop.camera_models)
+    changes = after_tip_changes(machine, model, [*prop.camera_models, *prop.noise_models], fit_commands, commands)
+    camera, noise = changes[:n_camera], changes[n_camera:]
     R = forward(machine, commands, model).tool_in_workpiece()[:, :3, :3]
     tip_fit = np.zeros((len(commands), 6))
     tip_fit[:, :3] = np.einsum("nij,jk,nik->ni", R, cov_t, R) * UM**2

@@ -13,6 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from tasks.vision.detection.region_kernels import contour_areas
 from tasks.vision.detection.rrht import CoarseCircles
 
 
@@ -27,23 +28,20 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
     """
     lo, hi = np.percentile(image[::4, ::4], (1, 99))
     offset = offset_fraction * max(float(hi - lo), 1.0)
-    src = image if dark_dots else cv2.bitwise_not(image)
+    src = (image if dark_dots else cv2.bitwise_not(image)).astype(np.float32)
+    a_min, a_max = np.pi * (d_min / 2) ** 2 * 0.6, np.pi * (d_max / 2) ** 2 * 1.4
     found = []
     block = 2 * d_min
     while block <= 4 * d_max:
         k = int(block) | 1
-        mean = cv2.blur(src.astype(np.float32), (k, k), borderType=cv2.BORDER_REFLECT)
-        mask = (src.astype(np.float32) < mean - offset).astype(np.uint8)
+        threshold = cv2.blur(src, (k, k), borderType=cv2.BORDER_REFLECT)
+        threshold -= offset  # in float32, as numpy's `mean - offset`
+        mask = cv2.compare(src, threshold, cv2.CMP_LT)  # 255 where darker: findContours takes any non-zero
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        for c in contours:
-            if len(c) < 6:
-                continue
-            area = cv2.contourArea(c)
-            if not (np.pi * (d_min / 2) ** 2 * 0.6 <= area <= np.pi * (d_max / 2) ** 2 * 1.4):
-                continue
-            hull = cv2.contourArea(cv2.convexHull(c))
-            if hull <= 0 or area / hull < min_convexity:
-                continue
+        areas, hulls = _areas(contours, a_min, a_max)
+        convex = (hulls > 0) & (areas / hulls >= min_convexity)  # NaN (not a dot's size) compares False
+        for i in np.flatnonzero(convex):
+            c, area = contours[i], float(areas[i])
             (cu, cv_), (w, h), ang = cv2.fitEllipse(c)
             a, b = max(w, h) / 2, min(w, h) / 2
             if b <= 0 or a / b > 4.0 or abs(area / (np.pi * a * b) - 1.0) > max_fill_error:
@@ -64,3 +62,16 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
             keep[i + 1 :] &= d > 0.5 * f[i, 3]
     f = f[keep]
     return CoarseCircles(f[:, :2].copy(), f[:, 2:4].copy(), f[:, 4].copy(), f[:, 5].copy(), np.ones(len(f)))
+
+
+
+def _areas(contours, a_min: float, a_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """(area, convex hull area) (N,) px² of the N contours, ``cv2.contourArea`` of the contour and of its
+    ``cv2.convexHull`` to every bit, in one compiled pass (:func:`region_kernels.contour_areas`); NaN for
+    contours of fewer than 6 points or an area outside a_min … a_max."""
+    if not contours:
+        return np.empty(0), np.empty(0)
+    lens = np.fromiter(map(len, contours), np.int64, len(contours))
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    points = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
+    return contour_areas(points, starts, lens, a_min, a_max)

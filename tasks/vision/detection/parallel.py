@@ -35,16 +35,21 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from itertools import pairwise
 
 import cv2
 import numpy as np
+import scipy.linalg.cython_blas  # noqa: F401 - the BLAS the compiled kernels call, loaded before the controller
+from threadpoolctl import ThreadpoolController
 
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
 _state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0,
                 "load_read": -1e9, "free_core": False}
 _spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
+_blas: dict = {"controller": None, "limiter": None, "users": 0}
+_blas_lock = threading.Lock()
 
 
 def set_threads(n: int | None) -> None:
@@ -168,3 +173,30 @@ def resize_area(image: np.ndarray, factor: int) -> np.ndarray:
     if len(bounds) == 1 or _spread(run, bounds) is None:
         return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
     return out
+
+
+@contextmanager
+def one_blas_thread():
+    """Within this context the BLAS libraries run each product on the calling thread alone (all
+    threads of the process; the first caller in sets it, the last one out restores the libraries'
+    own settings). For kernels that call BLAS on many small products (the pixel edge fit's 10 × M
+    Jacobian times its transpose, once per dot and iteration), already spread over
+    :func:`kernel_threads`: OpenBLAS's own threads, spinning while they wait for the next product,
+    made the fit of 12 dots of 400 px (10–18 thousand rim pixels each) 15× slower, 1.0–1.5 s of CPU
+    against 0.09 s, and the more so the busier the host (docs/detector-comparison.md, "Speed").
+    OpenBLAS splits a product's rows and columns among its threads, not the sums, so the results
+    are the same bits either way."""
+    with _blas_lock:
+        if _blas["users"] == 0:
+            if _blas["controller"] is None:
+                _blas["controller"] = ThreadpoolController()
+            _blas["limiter"] = _blas["controller"].limit(limits=1, user_api="blas")
+        _blas["users"] += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas["users"] -= 1
+            if _blas["users"] == 0:
+                _blas["limiter"].restore_original_limits()
+                _blas["limiter"] = None

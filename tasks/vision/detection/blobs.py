@@ -13,6 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from tasks.vision.detection.parallel import map_kernel
 from tasks.vision.detection.region_kernels import contour_areas
 from tasks.vision.detection.rrht import CoarseCircles
 
@@ -30,28 +31,33 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
     offset = offset_fraction * max(float(hi - lo), 1.0)
     src = (image if dark_dots else cv2.bitwise_not(image)).astype(np.float32)
     a_min, a_max = np.pi * (d_min / 2) ** 2 * 0.6, np.pi * (d_max / 2) ** 2 * 1.4
-    found = []
+    blocks = []
     block = 2 * d_min
     while block <= 4 * d_max:
-        k = int(block) | 1
+        blocks.append(int(block) | 1)
+        block *= 2
+
+    def regions(k: int) -> np.ndarray:  # (N, 6) cu, cv, a, b, θ, area of one window's dot-like regions
         threshold = cv2.blur(src, (k, k), borderType=cv2.BORDER_REFLECT)
         threshold -= offset  # in float32, as numpy's `mean - offset`
         mask = cv2.compare(src, threshold, cv2.CMP_LT)  # 255 where darker: findContours takes any non-zero
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         areas, hulls = _areas(contours, a_min, a_max)
-        convex = (hulls > 0) & (areas / hulls >= min_convexity)  # NaN (not a dot's size) compares False
-        for i in np.flatnonzero(convex):
-            c, area = contours[i], float(areas[i])
-            (cu, cv_), (w, h), ang = cv2.fitEllipse(c)
-            a, b = max(w, h) / 2, min(w, h) / 2
-            if b <= 0 or a / b > 4.0 or abs(area / (np.pi * a * b) - 1.0) > max_fill_error:
-                continue
-            theta = np.radians(ang) + (np.pi / 2 if h > w else 0.0)  # angle of the major axis
-            found.append((cu, cv_, a, b, (theta + np.pi / 2) % np.pi - np.pi / 2, area))
-        block *= 2
-    if not found:
+        convex = np.flatnonzero((hulls > 0) & (areas / hulls >= min_convexity))  # NaN (not a dot's size): False
+        ellipses = map(cv2.fitEllipse, (contours[i] for i in convex))
+        fits = np.array([(cu, cv_, w, h, ang) for (cu, cv_), (w, h), ang in ellipses], dtype=float).reshape(-1, 5)
+        w, h, area = fits[:, 2], fits[:, 3], areas[convex]
+        a, b = np.maximum(w, h) / 2, np.minimum(w, h) / 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ok = (b > 0) & ~(a / b > 4.0) & ~(np.abs(area / (np.pi * a * b) - 1.0) > max_fill_error)
+        theta = np.radians(fits[:, 4]) + np.where(h > w, np.pi / 2, 0.0)  # angle of the major axis
+        out = np.column_stack([fits[:, 0], fits[:, 1], a, b, (theta + np.pi / 2) % np.pi - np.pi / 2, area])
+        return out[ok]
+
+    found = np.concatenate(map_kernel(regions, blocks)) if blocks else np.empty((0, 6))
+    if not len(found):
         return CoarseCircles.empty()
-    f = np.array(found)
+    f = found
     # one candidate per dot: windows of several sizes find the same region
     order = np.argsort(-f[:, 5])
     f = f[order]

@@ -37,12 +37,14 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from itertools import pairwise
+from typing import TypeVar
 
 import cv2
 import numpy as np
 import scipy.linalg.cython_blas  # noqa: F401 - the BLAS the compiled kernels call, loaded before the controller
 from threadpoolctl import ThreadpoolController
 
+T = TypeVar("T")
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
 _state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0,
@@ -101,10 +103,10 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return pool
 
 
-def chunk_bounds(n: int, n_threads: int) -> list[tuple[int, int]]:
+def chunk_bounds(n: int, n_threads: int, min_chunk: int = MIN_DOTS_PER_CHUNK) -> list[tuple[int, int]]:
     """Contiguous (start, stop) ranges covering 0…n, at most ``n_threads`` of them and each at least
-    :data:`MIN_DOTS_PER_CHUNK` long (one range when n is small)."""
-    k = max(1, min(n_threads, n // MIN_DOTS_PER_CHUNK))
+    ``min_chunk`` long (one range when n is small)."""
+    k = max(1, min(n_threads, n // min_chunk))
     edges = np.linspace(0, n, k + 1).round().astype(int)
     return [(int(a), int(b)) for a, b in pairwise(edges)]
 
@@ -154,6 +156,19 @@ def over_ranges(run: Callable[[int, int], None], n: int) -> None:
     bounds = chunk_bounds(n, kernel_threads())
     if len(bounds) == 1 or _spread(lambda lo_hi: run(*lo_hi), bounds) is None:
         run(0, n)
+
+
+def map_kernel(fn: Callable[[object], T], items: list) -> list[T]:
+    """``[fn(x) for x in items]`` with the items cut into contiguous groups, one per
+    :func:`kernel_threads` thread (the first on the calling thread), for a ``fn`` whose time goes to
+    OpenCV and compiled loops that release the GIL; each result is its item's, whatever the split."""
+    bounds = chunk_bounds(len(items), kernel_threads(), min_chunk=1)
+
+    def run(lo_hi: tuple[int, int]) -> list[T]:
+        return [fn(x) for x in items[lo_hi[0] : lo_hi[1]]]
+
+    parts = _spread(run, bounds) if len(bounds) > 1 else None
+    return [fn(x) for x in items] if parts is None else [r for part in parts for r in part]
 
 
 def resize_area(image: np.ndarray, factor: int) -> np.ndarray:

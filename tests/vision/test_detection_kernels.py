@@ -3,17 +3,20 @@
 tasks/vision/detection/step_kernels.py, conic_kernels.py and ray_kernels.py replace numpy array
 expressions by loops that do the same floating-point operations in the same order; each test runs
 the numpy form (written out here as the reference) and the compiled one on random inputs shaped
-like a plate's rays and compares the bytes.
+like a plate's rays and compares the bytes. region_kernels.py replaces OpenCV's contour and convex
+hull areas (exact sums of integer coordinates), compared with OpenCV's on random regions.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from tasks.vision.detection import conics, step_kernels, subpixel
+from tasks.vision.detection import blobs, conics, step_kernels, subpixel
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
+from tasks.vision.detection.region_kernels import contour_areas
 
 
 def _solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -216,3 +219,39 @@ def test_ray_coordinates_derivative_peaks_and_flattening_are_the_numpy_forms_to_
                      + grad[:, 1, None, None] * np.sin(ang)[None, :, None])
     want = prof / np.clip(rel, 0.5, 2.0).astype(np.float32)
     assert want.tobytes() == flatten(prof, t, grad, np.cos(ang), np.sin(ang)).tobytes()
+
+
+def test_contour_areas_are_opencvs_contour_and_hull_areas_to_every_bit():
+    rng = np.random.default_rng(11)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (240, 320)).astype(np.uint8), (0, 0), 2.0)
+    contours, _ = cv2.findContours((img < 120).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contours = [*contours, np.array([[[5, 5]], [[9, 5]], [[13, 5]], [[17, 5]], [[21, 5]], [[25, 5]]], np.int32)]
+    lens = np.array([len(c) for c in contours])
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    points = np.concatenate(contours).reshape(-1, 2).astype(float)
+    area, hull = contour_areas(points, starts, lens, 0.0, np.inf)
+    big = lens >= 6
+    assert big.sum() > 50 and np.isnan(area[~big]).all() and np.isnan(hull[~big]).all()
+    want_area = np.array([cv2.contourArea(c) for c in contours])[big]
+    want_hull = np.array([cv2.contourArea(cv2.convexHull(c)) for c in contours])[big]
+    assert area[big].tobytes() == want_area.tobytes() and hull[big].tobytes() == want_hull.tobytes()
+    assert hull[-1] == 0.0  # collinear points: no hull area
+    a_min, a_max = np.quantile(want_area, [0.3, 0.7])
+    area, _ = contour_areas(points, starts, lens, a_min, a_max)
+    inside = (want_area >= a_min) & (want_area <= a_max)
+    assert np.array_equal(np.isfinite(area[big]), inside)
+
+
+def test_first_of_each_place_keeps_what_the_pass_over_all_earlier_regions_keeps():
+    rng = np.random.default_rng(5)
+    for n, spread in ((1, 10.0), (300, 60.0), (2000, 400.0)):
+        centres = rng.uniform(0, spread, (n, 2))
+        centres[n // 2 :: 7] = centres[: len(centres[n // 2 :: 7])]  # exact repeats: distance 0
+        reach = rng.uniform(0.5, 6.0, n)
+        want = np.ones(n, bool)
+        for i in range(n):  # the pass over all later regions (the definition)
+            if want[i]:
+                d = np.hypot(centres[i + 1 :, 0] - centres[i, 0], centres[i + 1 :, 1] - centres[i, 1])
+                want[i + 1 :] &= d > reach[i]
+        got = blobs.first_of_each_place(centres, reach)
+        assert np.array_equal(got, want) and (n == 1 or 0 < got.sum() < n)

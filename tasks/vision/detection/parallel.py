@@ -200,8 +200,7 @@ def one_blas_thread():
     made the fit of 12 dots of 400 px (10–18 thousand rim pixels each) take 1.0–1.5 s of CPU against
     0.1 s, and the more so the busier the host (docs/detector-comparison.md, "Speed"). Every output
     of the detection came out the same bits either way (the 12 MP envelope, the stress set, random
-    stress cases and the full-size bench's renders; below about 2600 pixels per dot OpenBLAS does
-    not split these products anyway)."""
+    stress cases and the full-size bench's renders)."""
     with _blas_lock:
         if _blas["users"] == 0:
             if _blas["controller"] is None:

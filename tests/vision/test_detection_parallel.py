@@ -189,7 +189,7 @@ def test_map_kernel_keeps_the_items_order_on_any_number_of_threads(restore_threa
         parallel.set_kernel_threads(n)
         got = parallel.map_kernel(lambda x, seen=seen: seen.add(threading.get_ident()) or x * x, items)
         # the calling thread takes the first group, the helpers the rest (a helper may take two)
-        assert got == [x * x for x in items] and len(seen) == min(n, 2)
+        assert got == [x * x for x in items] and min(n, 2) <= len(seen) <= n
 
 
 def test_contour_candidates_are_the_same_bits_with_one_and_two_kernel_threads(restore_threads):

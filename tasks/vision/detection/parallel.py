@@ -14,8 +14,9 @@ Two settings. :func:`set_threads` spreads whole stages (:func:`over_dots`); it i
 (``bench/bench_detection.py`` and ``--threads 1``, commit 5dc2319): per dot those stages are many
 small array operations, and their Python between them holds the GIL. :func:`set_kernel_threads`
 spreads the parts whose time is compiled loops, OpenCV or large array operations, all of which
-release the GIL (:func:`over_dots_compiled`, :func:`over_ranges`, :func:`resize_area`: the pixel
-edge fit's normal equations, pass 2's step fits, the area-averaged copies); by default on 2
+release the GIL (:func:`over_dots_compiled`, :func:`over_ranges`, :func:`resize_area`,
+:func:`map_kernel`: the pixel edge fit's normal equations, pass 2's step fits, the area-averaged
+copies, the region-contour candidates' threshold windows); by default on 2
 threads while the host has a free CPU, else on the caller's (:func:`kernel_threads`;
 docs/detector-comparison.md, "Speed", for what it gains and costs). One caller at a time spreads
 its work; others run theirs whole.

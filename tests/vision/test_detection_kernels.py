@@ -3,17 +3,22 @@
 tasks/vision/detection/step_kernels.py, conic_kernels.py and ray_kernels.py replace numpy array
 expressions by loops that do the same floating-point operations in the same order; each test runs
 the numpy form (written out here as the reference) and the compiled one on random inputs shaped
-like a plate's rays and compares the bytes.
+like a plate's rays and compares the bytes. region_kernels.py replaces OpenCV's contour and convex
+hull areas (exact sums of integer coordinates), compared with OpenCV's on random regions; the
+candidate search's one-region-per-place pass and the Hough accumulator over its occupied bins are
+compared with their direct forms.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from tasks.vision.detection import conics, step_kernels, subpixel
+from tasks.vision.detection import blobs, conics, rrht, step_kernels, subpixel
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
+from tasks.vision.detection.region_kernels import contour_areas
 
 
 def _solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -216,3 +221,74 @@ def test_ray_coordinates_derivative_peaks_and_flattening_are_the_numpy_forms_to_
                      + grad[:, 1, None, None] * np.sin(ang)[None, :, None])
     want = prof / np.clip(rel, 0.5, 2.0).astype(np.float32)
     assert want.tobytes() == flatten(prof, t, grad, np.cos(ang), np.sin(ang)).tobytes()
+
+
+def test_contour_areas_are_opencvs_contour_and_hull_areas_to_every_bit():
+    rng = np.random.default_rng(11)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (240, 320)).astype(np.uint8), (0, 0), 2.0)
+    contours, _ = cv2.findContours((img < 120).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contours = [*contours, np.array([[[5, 5]], [[9, 5]], [[13, 5]], [[17, 5]], [[21, 5]], [[25, 5]]], np.int32)]
+    lens = np.array([len(c) for c in contours])
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    points = np.concatenate(contours).reshape(-1, 2).astype(float)
+    area, hull = contour_areas(points, starts, lens, 0.0, np.inf)
+    big = lens >= 6
+    assert big.sum() > 50 and np.isnan(area[~big]).all() and np.isnan(hull[~big]).all()
+    want_area = np.array([cv2.contourArea(c) for c in contours])[big]
+    want_hull = np.array([cv2.contourArea(cv2.convexHull(c)) for c in contours])[big]
+    assert area[big].tobytes() == want_area.tobytes() and hull[big].tobytes() == want_hull.tobytes()
+    assert hull[-1] == 0.0  # collinear points: no hull area
+    a_min, a_max = np.quantile(want_area, [0.3, 0.7])
+    area, _ = contour_areas(points, starts, lens, a_min, a_max)
+    inside = (want_area >= a_min) & (want_area <= a_max)
+    assert np.array_equal(np.isfinite(area[big]), inside)
+
+
+def test_first_of_each_place_keeps_what_the_pass_over_all_earlier_regions_keeps():
+    rng = np.random.default_rng(5)
+    for n, spread in ((1, 10.0), (300, 60.0), (2000, 400.0)):
+        centres = rng.uniform(0, spread, (n, 2))
+        centres[n // 2 :: 7] = centres[: len(centres[n // 2 :: 7])]  # exact repeats: distance 0
+        reach = rng.uniform(0.5, 6.0, n)
+        want = np.ones(n, bool)
+        for i in range(n):  # the pass over all later regions (the definition)
+            if want[i]:
+                d = np.hypot(centres[i + 1 :, 0] - centres[i, 0], centres[i + 1 :, 1] - centres[i, 1])
+                want[i + 1 :] &= d > reach[i]
+        got = blobs.first_of_each_place(centres, reach)
+        assert np.array_equal(got, want) and (n == 1 or 0 < got.sum() < n)
+
+
+def _accumulate_dense(centres, radii, shape, params, sample_rate):
+    """rrht.accumulate with every accumulator map a bincount over all bins (the definition)."""
+    b = params.bin_px
+    hb, wb = shape[0] // b + 1, shape[1] // b + 1
+    iu = np.clip((centres[:, 0] / b).astype(np.int64), 0, wb - 1)
+    iv = np.clip((centres[:, 1] / b).astype(np.int64), 0, hb - 1)
+    flat = iv * wb + iu
+    maps = [np.bincount(flat, weights=w, minlength=hb * wb).reshape(hb, wb).astype(np.float32)
+            for w in (None, centres[:, 0], centres[:, 1], radii)]
+    box = [cv2.boxFilter(m, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT) for m in maps]
+    ramp = np.arange(hb * wb, dtype=np.float32).reshape(hb, wb) * np.float32(1e-3 / (hb * wb))
+    score = box[0] + np.float32(0.01) * maps[0] + ramp
+    peak = (box[0] >= params.min_votes) & (score >= cv2.dilate(score, np.ones((3, 3), np.uint8)))
+    pv, pu = np.nonzero(peak)
+    votes = box[0][pv, pu].astype(float)
+    c = np.stack([box[1][pv, pu] / votes, box[2][pv, pu] / votes], axis=1)
+    r = box[3][pv, pu] / votes
+    keep = votes >= np.maximum(params.min_votes, params.vote_fraction * sample_rate * 2 * np.pi * r)
+    order = np.argsort(-votes[keep])[: params.max_candidates]
+    return c[keep][order], r[keep][order], votes[keep][order]
+
+
+@pytest.mark.parametrize("shape,n", [((2016, 1512), 3000), ((480, 640), 400), ((300, 200), 5000)])
+def test_accumulate_over_the_occupied_bins_gives_the_dense_accumulators_peaks(shape, n):
+    rng = np.random.default_rng(n)
+    centres = rng.uniform(-2.0, max(shape) + 2.0, (n, 2))
+    centres[: n // 3] = centres[n // 3 : 2 * (n // 3)] + rng.normal(0.0, 0.8, (n // 3, 2))  # clustered votes
+    radii = rng.uniform(3.0, 9.0, n)
+    params = rrht.RRHTParams()
+    got = rrht.accumulate(centres, radii, shape, params, 0.4)
+    want = _accumulate_dense(centres, radii, shape, params, 0.4)
+    assert len(got[0]) > 10
+    assert all(g.tobytes() == w.tobytes() for g, w in zip(got, want, strict=True))

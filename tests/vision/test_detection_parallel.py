@@ -10,11 +10,12 @@ from itertools import pairwise
 import cv2
 import numpy as np
 import pytest
+import threadpoolctl
 
 from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate, facing_camera_pose
 from tasks.simulation.render import ImagingConditions, render_plate_image
-from tasks.vision.detection import framework, parallel, perspective
+from tasks.vision.detection import blobs, framework, parallel, perspective
 from tasks.vision.detection.edges import pixels_where
 
 DIST = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
@@ -179,3 +180,36 @@ def test_nested_and_concurrent_callers_run_their_work_whole_without_waiting(rest
     for t in workers:
         t.join(timeout=30)
     assert all(np.array_equal(results[k], a * k) for k in range(4))
+
+
+def test_map_kernel_keeps_the_items_order_on_any_number_of_threads(restore_threads):
+    items = list(range(7))
+    for n in (1, 2, 3):
+        seen = set()
+        parallel.set_kernel_threads(n)
+        got = parallel.map_kernel(lambda x, seen=seen: seen.add(threading.get_ident()) or x * x, items)
+        # the calling thread takes the first group, the helpers the rest (a helper may take two)
+        assert got == [x * x for x in items] and min(n, 2) <= len(seen) <= n
+
+
+def test_contour_candidates_are_the_same_bits_with_one_and_two_kernel_threads(restore_threads):
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (300, 400)).astype(np.uint8), (0, 0), 3.0)  # blobs of all sizes
+    runs = []
+    for n in (1, 2):
+        parallel.set_kernel_threads(n)
+        c = blobs.contour_candidates(img, True, 6.0, 30.0)
+        runs.append(np.column_stack([c.centres, c.axes, c.theta, c.votes]))
+    assert len(runs[0]) > 20 and runs[0].tobytes() == runs[1].tobytes()
+
+
+def test_one_blas_thread_limits_every_blas_while_inside_and_restores_it():
+    def blas_threads():
+        return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    with parallel.one_blas_thread():
+        with parallel.one_blas_thread():  # nested (or another thread's) use keeps the limit
+            assert blas_threads() == [1] * len(before)
+        assert blas_threads() == [1] * len(before)
+    assert blas_threads() == before

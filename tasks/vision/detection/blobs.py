@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
+from tasks.vision.detection.parallel import map_kernel
+from tasks.vision.detection.region_kernels import contour_areas
 from tasks.vision.detection.rrht import CoarseCircles
 
 
@@ -27,40 +30,67 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
     """
     lo, hi = np.percentile(image[::4, ::4], (1, 99))
     offset = offset_fraction * max(float(hi - lo), 1.0)
-    src = image if dark_dots else cv2.bitwise_not(image)
-    found = []
+    src = (image if dark_dots else cv2.bitwise_not(image)).astype(np.float32)
+    a_min, a_max = np.pi * (d_min / 2) ** 2 * 0.6, np.pi * (d_max / 2) ** 2 * 1.4
+    blocks = []
     block = 2 * d_min
     while block <= 4 * d_max:
-        k = int(block) | 1
-        mean = cv2.blur(src.astype(np.float32), (k, k), borderType=cv2.BORDER_REFLECT)
-        mask = (src.astype(np.float32) < mean - offset).astype(np.uint8)
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        for c in contours:
-            if len(c) < 6:
-                continue
-            area = cv2.contourArea(c)
-            if not (np.pi * (d_min / 2) ** 2 * 0.6 <= area <= np.pi * (d_max / 2) ** 2 * 1.4):
-                continue
-            hull = cv2.contourArea(cv2.convexHull(c))
-            if hull <= 0 or area / hull < min_convexity:
-                continue
-            (cu, cv_), (w, h), ang = cv2.fitEllipse(c)
-            a, b = max(w, h) / 2, min(w, h) / 2
-            if b <= 0 or a / b > 4.0 or abs(area / (np.pi * a * b) - 1.0) > max_fill_error:
-                continue
-            theta = np.radians(ang) + (np.pi / 2 if h > w else 0.0)  # angle of the major axis
-            found.append((cu, cv_, a, b, (theta + np.pi / 2) % np.pi - np.pi / 2, area))
+        blocks.append(int(block) | 1)
         block *= 2
-    if not found:
+
+    def regions(k: int) -> np.ndarray:  # (N, 6) cu, cv, a, b, θ, area of one window's dot-like regions
+        threshold = cv2.blur(src, (k, k), borderType=cv2.BORDER_REFLECT)
+        threshold -= offset  # in float32, as numpy's `mean - offset`
+        mask = cv2.compare(src, threshold, cv2.CMP_LT)  # 255 where darker: findContours takes any non-zero
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        areas, hulls = _areas(contours, a_min, a_max)
+        convex = np.flatnonzero((hulls > 0) & (areas / hulls >= min_convexity))  # NaN (not a dot's size): False
+        ellipses = map(cv2.fitEllipse, (contours[i] for i in convex))
+        fits = np.array([(cu, cv_, w, h, ang) for (cu, cv_), (w, h), ang in ellipses], dtype=float).reshape(-1, 5)
+        w, h, area = fits[:, 2], fits[:, 3], areas[convex]
+        a, b = np.maximum(w, h) / 2, np.minimum(w, h) / 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ok = (b > 0) & ~(a / b > 4.0) & ~(np.abs(area / (np.pi * a * b) - 1.0) > max_fill_error)
+        theta = np.radians(fits[:, 4]) + np.where(h > w, np.pi / 2, 0.0)  # angle of the major axis
+        out = np.column_stack([fits[:, 0], fits[:, 1], a, b, (theta + np.pi / 2) % np.pi - np.pi / 2, area])
+        return out[ok]
+
+    found = np.concatenate(map_kernel(regions, blocks)) if blocks else np.empty((0, 6))
+    if not len(found):
         return CoarseCircles.empty()
-    f = np.array(found)
     # one candidate per dot: windows of several sizes find the same region
-    order = np.argsort(-f[:, 5])
-    f = f[order]
-    keep = np.ones(len(f), bool)
-    for i in range(len(f)):
-        if keep[i]:
-            d = np.hypot(f[i + 1 :, 0] - f[i, 0], f[i + 1 :, 1] - f[i, 1])
-            keep[i + 1 :] &= d > 0.5 * f[i, 3]
-    f = f[keep]
+    f = found[np.argsort(-found[:, 5])]
+    f = f[first_of_each_place(f[:, :2], 0.5 * f[:, 3])]
     return CoarseCircles(f[:, :2].copy(), f[:, 2:4].copy(), f[:, 4].copy(), f[:, 5].copy(), np.ones(len(f)))
+
+
+
+def first_of_each_place(centres: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(N,) bool: going through the N regions in order, each one kept unless an earlier kept one lies
+    within its own ``reach`` (px) of it (distance ≤ reach, ``np.hypot`` of the centres' difference).
+    Only the pairs a k-d tree finds within the largest reach are measured: a textured image gives
+    thousands of regions, and a pass over all earlier ones per region cost tens of ms."""
+    keep = np.ones(len(centres), bool)
+    if len(centres) < 2:
+        return keep
+    near = cKDTree(centres).query_pairs(float(reach.max()) * (1.0 + 1e-9) + 1e-9, output_type="ndarray")
+    i, j = np.sort(near, axis=1).T  # i < j: i comes first
+    d = np.hypot(centres[j, 0] - centres[i, 0], centres[j, 1] - centres[i, 1])
+    close = ~(d > reach[i])
+    i, j = i[close], j[close]
+    for k in np.lexsort((j, i)):  # by the earlier region, in order
+        if keep[i[k]]:
+            keep[j[k]] = False
+    return keep
+
+
+def _areas(contours, a_min: float, a_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """(area, convex hull area) (N,) px² of the N contours, ``cv2.contourArea`` of the contour and of its
+    ``cv2.convexHull`` to every bit, in one compiled pass (:func:`region_kernels.contour_areas`); NaN for
+    contours of fewer than 6 points or an area outside a_min … a_max."""
+    if not contours:
+        return np.empty(0), np.empty(0)
+    lens = np.fromiter(map(len, contours), np.int64, len(contours))
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    points = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
+    return contour_areas(points, starts, lens, a_min, a_max)

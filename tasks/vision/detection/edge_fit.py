@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from tasks.vision.detection.parallel import over_dots, over_ranges
+from tasks.vision.detection.parallel import one_blas_thread, over_dots, over_ranges
 from tasks.vision.detection.stats import masked_median
 
 N_PARAMS = 10  # cx, cy, a, b, θ, L_in, L_out, s, g_u, g_v
@@ -317,7 +317,8 @@ def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, thet
     l_in = masked_median(z, mask & (d0 < -far))
     l_out = masked_median(z, mask & (d0 > far))
     q = np.column_stack([centres[idx], axes[idx], theta[idx], l_in, l_out, s0, np.zeros((idx.size, 2))])
-    q, w, cost = over_dots(_levenberg_marquardt, idx.size, q, x, y, z, mask, p=p)
+    with one_blas_thread():
+        q, w, cost = over_dots(_levenberg_marquardt, idx.size, q, x, y, z, mask, p=p)
     a_fit, b_fit = np.abs(q[:, 2]), np.abs(q[:, 3])
     s_fit = np.abs(q[:, 7])
     shift = np.linalg.norm(q[:, :2] - centres[idx], axis=1)

@@ -14,8 +14,9 @@ Two settings. :func:`set_threads` spreads whole stages (:func:`over_dots`); it i
 (``bench/bench_detection.py`` and ``--threads 1``, commit 5dc2319): per dot those stages are many
 small array operations, and their Python between them holds the GIL. :func:`set_kernel_threads`
 spreads the parts whose time is compiled loops, OpenCV or large array operations, all of which
-release the GIL (:func:`over_dots_compiled`, :func:`over_ranges`, :func:`resize_area`: the pixel
-edge fit's normal equations, pass 2's step fits, the area-averaged copies); by default on 2
+release the GIL (:func:`over_dots_compiled`, :func:`over_ranges`, :func:`resize_area`,
+:func:`map_kernel`: the pixel edge fit's normal equations, pass 2's step fits, the area-averaged
+copies, the region-contour candidates' threshold windows); by default on 2
 threads while the host has a free CPU, else on the caller's (:func:`kernel_threads`;
 docs/detector-comparison.md, "Speed", for what it gains and costs). One caller at a time spreads
 its work; others run theirs whole.
@@ -35,16 +36,23 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from itertools import pairwise
+from typing import TypeVar
 
 import cv2
 import numpy as np
+import scipy.linalg.cython_blas  # noqa: F401 - the BLAS the compiled kernels call, loaded before the controller
+from threadpoolctl import ThreadpoolController
 
+T = TypeVar("T")
 MIN_DOTS_PER_CHUNK = 4  # fewer dots than this per thread are not worth a thread's start-up
 
 _state: dict = {"threads": None, "kernel_threads": None, "pool": None, "pid": None, "workers": 0,
                 "load_read": -1e9, "free_core": False}
 _spreading = threading.Lock()  # held by the one caller whose work is on the helper threads
+_blas: dict = {"controller": None, "limiter": None, "users": 0}
+_blas_lock = threading.Lock()
 
 
 def set_threads(n: int | None) -> None:
@@ -96,10 +104,10 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return pool
 
 
-def chunk_bounds(n: int, n_threads: int) -> list[tuple[int, int]]:
+def chunk_bounds(n: int, n_threads: int, min_chunk: int = MIN_DOTS_PER_CHUNK) -> list[tuple[int, int]]:
     """Contiguous (start, stop) ranges covering 0…n, at most ``n_threads`` of them and each at least
-    :data:`MIN_DOTS_PER_CHUNK` long (one range when n is small)."""
-    k = max(1, min(n_threads, n // MIN_DOTS_PER_CHUNK))
+    ``min_chunk`` long (one range when n is small)."""
+    k = max(1, min(n_threads, n // min_chunk))
     edges = np.linspace(0, n, k + 1).round().astype(int)
     return [(int(a), int(b)) for a, b in pairwise(edges)]
 
@@ -151,6 +159,19 @@ def over_ranges(run: Callable[[int, int], None], n: int) -> None:
         run(0, n)
 
 
+def map_kernel(fn: Callable[[object], T], items: list) -> list[T]:
+    """``[fn(x) for x in items]`` with the items cut into contiguous groups, one per
+    :func:`kernel_threads` thread (the first on the calling thread), for a ``fn`` whose time goes to
+    OpenCV and compiled loops that release the GIL; each result is its item's, whatever the split."""
+    bounds = chunk_bounds(len(items), kernel_threads(), min_chunk=1)
+
+    def run(lo_hi: tuple[int, int]) -> list[T]:
+        return [fn(x) for x in items[lo_hi[0] : lo_hi[1]]]
+
+    parts = _spread(run, bounds) if len(bounds) > 1 else None
+    return [fn(x) for x in items] if parts is None else [r for part in parts for r in part]
+
+
 def resize_area(image: np.ndarray, factor: int) -> np.ndarray:
     """``cv2.resize(image, (W // factor, H // factor), interpolation=cv2.INTER_AREA)`` of an (H, W)
     image. When factor divides H and W, each output row is the mean of its own ``factor`` input
@@ -168,3 +189,30 @@ def resize_area(image: np.ndarray, factor: int) -> np.ndarray:
     if len(bounds) == 1 or _spread(run, bounds) is None:
         return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
     return out
+
+
+@contextmanager
+def one_blas_thread():
+    """Within this context the BLAS libraries run each product on the calling thread alone (all
+    threads of the process; the first caller in sets it, the last one out restores the libraries'
+    own settings). For kernels that call BLAS on many small products (the pixel edge fit's 10 × M
+    Jacobian times its transpose, once per dot and iteration), already spread over
+    :func:`kernel_threads`: OpenBLAS's own threads, spinning while they wait for the next product,
+    made the fit of 12 dots of 400 px (10–18 thousand rim pixels each) take 0.3–1.5 s of CPU against
+    0.1 s, and the more so the busier the host (docs/detector-comparison.md, "Speed"). It also
+    makes the results independent of the BLAS threads the host offers: compared with two threads
+    on 273 images, one dot's minor axis differed by 7e-15 px, every centre the same bits."""
+    with _blas_lock:
+        if _blas["users"] == 0:
+            if _blas["controller"] is None:
+                _blas["controller"] = ThreadpoolController()
+            _blas["limiter"] = _blas["controller"].limit(limits=1, user_api="blas")
+        _blas["users"] += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas["users"] -= 1
+            if _blas["users"] == 0:
+                _blas["limiter"].restore_original_limits()
+                _blas["limiter"] = None

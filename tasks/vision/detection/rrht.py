@@ -177,11 +177,16 @@ def accumulate(centres: np.ndarray, radii: np.ndarray, shape: tuple[int, int], p
     hb, wb = h // b + 1, w // b + 1
     iu = np.clip((centres[:, 0] / b).astype(np.int64), 0, wb - 1)
     iv = np.clip((centres[:, 1] / b).astype(np.int64), 0, hb - 1)
-    flat = iv * wb + iu
-    n = np.bincount(flat, minlength=hb * wb).reshape(hb, wb).astype(np.float32)
-    su = np.bincount(flat, weights=centres[:, 0], minlength=hb * wb).reshape(hb, wb).astype(np.float32)
-    sv = np.bincount(flat, weights=centres[:, 1], minlength=hb * wb).reshape(hb, wb).astype(np.float32)
-    sr = np.bincount(flat, weights=radii, minlength=hb * wb).reshape(hb, wb).astype(np.float32)
+    # a few thousand samples in up to millions of bins: sums over the occupied bins only (each bin's
+    # samples added in their order, as a bincount over all bins does), spread into float32 maps
+    occupied, slot = np.unique(iv * wb + iu, return_inverse=True)
+
+    def binned(weights: np.ndarray | None) -> np.ndarray:
+        out = np.zeros(hb * wb, np.float32)
+        out[occupied] = np.bincount(slot, weights=weights, minlength=len(occupied))
+        return out.reshape(hb, wb)
+
+    n, su, sv, sr = binned(None), binned(centres[:, 0]), binned(centres[:, 1]), binned(radii)
     box = (3, 3)
     n3 = cv2.boxFilter(n, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
     # strict local maxima: ties (plateaus of equal 3×3 sums) are broken by the centre bin's own

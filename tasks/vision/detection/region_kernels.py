@@ -1,0 +1,83 @@
+"""Areas of many region contours at once, compiled: the candidate search's filters before ``cv2.fitEllipse``.
+
+A textured 12 MP photograph thresholded against its local mean gives tens of thousands of
+contours per window (:mod:`tasks.vision.detection.blobs`); a Python call of ``cv2.contourArea`` and
+``cv2.convexHull`` for each cost more than OpenCV's own work. Here all contours of a window are one
+array of integer points (concatenated, as ``cv2.findContours`` gives them) and one compiled pass
+gives each contour's enclosed area and its convex hull's area. Both are shoelace sums of integer
+coordinates, exact in float64 whatever the order of summation, and the convex hull of a point set
+is unique: the areas equal ``cv2.contourArea(c)`` and ``cv2.contourArea(cv2.convexHull(c))`` to
+every bit (tests/vision/test_detection_kernels.py). Units: px², the contour's pixel grid.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_COMPILED = {"cache": True, "nogil": True}
+
+
+@njit(**_COMPILED)
+def _shoelace(x, y):  # pragma: no cover - compiled
+    """|Σ (x_{i−1} y_i − y_{i−1} x_i)| / 2 of the closed polygon (x, y) (float64 of integers: exact)."""
+    n = x.shape[0]
+    s = 0.0
+    px, py = x[n - 1], y[n - 1]
+    for i in range(n):
+        s += px * y[i] - py * x[i]
+        px, py = x[i], y[i]
+    return abs(0.5 * s)
+
+
+@njit(**_COMPILED)
+def _cross(ox, oy, ax, ay, bx, by):  # pragma: no cover - compiled
+    return (ax - ox) * (by - oy) - (ay - oy) * (bx - ox)
+
+
+@njit(**_COMPILED)
+def _hull_area(x, y):  # pragma: no cover - compiled
+    """Area of the convex hull of the points (x, y) (Andrew's monotone chain; collinear points
+    dropped, which leaves the area unchanged)."""
+    n = x.shape[0]
+    if n < 3:
+        return 0.0
+    order = np.argsort(x * 4294967296.0 + y)  # by x, then y (coordinates below 2³¹: exact keys)
+    hx = np.empty(2 * n)
+    hy = np.empty(2 * n)
+    k = 0
+    for j in range(n):  # lower hull
+        i = order[j]
+        while k >= 2 and _cross(hx[k - 2], hy[k - 2], hx[k - 1], hy[k - 1], x[i], y[i]) <= 0.0:
+            k -= 1
+        hx[k], hy[k] = x[i], y[i]
+        k += 1
+    lower = k + 1
+    for j in range(n - 2, -1, -1):  # upper hull
+        i = order[j]
+        while k >= lower and _cross(hx[k - 2], hy[k - 2], hx[k - 1], hy[k - 1], x[i], y[i]) <= 0.0:
+            k -= 1
+        hx[k], hy[k] = x[i], y[i]
+        k += 1
+    return _shoelace(hx[: k - 1], hy[: k - 1])  # the last point repeats the first
+
+
+@njit(**_COMPILED)
+def contour_areas(points, starts, lens, a_min, a_max):  # pragma: no cover - compiled
+    """(area, hull area) (N,) of N closed contours, contour j being points[starts[j]:starts[j] + lens[j]]
+    ((P, 2) float64 integer u, v); a contour whose area lies outside a_min … a_max, or with fewer than
+    6 points, gets NaN for both (not computed)."""
+    n = starts.shape[0]
+    area = np.full(n, np.nan)
+    hull = np.full(n, np.nan)
+    for j in range(n):
+        if lens[j] < 6:
+            continue
+        x = points[starts[j] : starts[j] + lens[j], 0]
+        y = points[starts[j] : starts[j] + lens[j], 1]
+        a = _shoelace(x, y)
+        if a < a_min or a > a_max:
+            continue
+        area[j] = a
+        hull[j] = _hull_area(x, y)
+    return area, hull

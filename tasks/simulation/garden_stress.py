@@ -12,7 +12,8 @@ such a photograph at random in one regime, not modelled on any one image:
 * foliage around it: smooth leaf texture at several scales and many blobs of every size from a
   tenth of a dot to four dots, random ellipticity, angle and grey level (dark gaps and lit
   leaves, a share of them dark and round at the dots' own size), optionally out of focus;
-* a cast shadow of a random smooth shape across the scene, vignetting, a colour cast (green
+* a cast shadow of a random shape across the scene, vignetting, exposure (the paper may
+  saturate), defocus, the camera's sharpening (halos round every edge), a colour cast (green
   foliage, a brown board, warm paper), chroma noise, JPEG of quality 70–95, and the conversion to
   grey that ``fivecal detect`` applies (``cv2.COLOR_BGR2GRAY``).
 
@@ -46,7 +47,10 @@ class GardenCase:
     the sheet (three times that at the clip's side); clip: draw the clip; blob_density: foliage
     blobs per dot area of the image; foliage_blur_px: defocus σ of the garden; shadow: darkest
     factor of the cast shadow (1 = none); shadow_soft_px: σ of its edge; vignetting: fractional
-    loss at the image corners; jpeg: quality.
+    loss at the image corners; jpeg: quality; exposure: gain on the whole scene before the 8-bit
+    clip (above 1 the paper saturates); blur_px: defocus σ of the whole image (a phone focused a
+    little off the sheet); sharpen: amount of the camera's unsharp mask (radius ``sharpen_px``), whose
+    halos ring every edge.
     """
 
     geometry: StressCase
@@ -59,6 +63,10 @@ class GardenCase:
     shadow_soft_px: float = 10.0
     vignetting: float = 0.3
     jpeg: int = 85
+    exposure: float = 1.0
+    blur_px: float = 0.0
+    sharpen: float = 0.0
+    sharpen_px: float = 2.0
 
     @property
     def name(self) -> str:
@@ -101,7 +109,9 @@ def random_garden_case(rng: np.random.Generator, name: str, regime: str = "phone
                       clip=bool(rng.random() < 0.8),
                       blob_density=u(0.5, 3.0), foliage_blur_px=float(rng.choice([0.0, 0.0, u(0.02, 0.15) * dot])),
                       shadow=1.0 if (regime != "fisheye" and rng.random() < 0.3) else u(0.35, 0.8),
-                      shadow_soft_px=u(0.05, 1.0) * dot, vignetting=u(0.0, 0.5), jpeg=int(rng.integers(70, 96)))
+                      shadow_soft_px=u(0.05, 1.0) * dot, vignetting=u(0.0, 0.5), jpeg=int(rng.integers(70, 96)),
+                      exposure=u(0.8, 1.3), blur_px=u(0.0, 0.02) * dot, sharpen=float(rng.choice([0.0, u(0.3, 1.5)])),
+                      sharpen_px=u(1.0, 3.0))
     dots = replace(ISSUE_PLATE, dark_dots=geometry.dark_dots)
     return case if plate_in_view(geometry.camera(), dots, geometry.pose(), border_px=1.0) else None
 
@@ -217,7 +227,11 @@ def render_garden_case(case: GardenCase) -> tuple[np.ndarray, np.ndarray]:
         grey *= _cast_shadow(rng, shape, truth.mean(axis=0), size, case.shadow, case.shadow_soft_px)
     vv, uu = np.mgrid[0 : g.height, 0 : g.width].astype(np.float32)
     r2 = ((uu - g.width / 2) ** 2 + (vv - g.height / 2) ** 2) / ((g.width / 2) ** 2 + (g.height / 2) ** 2)
-    grey *= 1.0 - case.vignetting * r2
+    grey *= case.exposure * (1.0 - case.vignetting * r2)
+    if case.blur_px > 0.3:
+        grey = cv2.GaussianBlur(grey, (0, 0), case.blur_px)
+    if case.sharpen > 0:  # the phone's unsharp mask: a halo on either side of every edge
+        grey = grey + case.sharpen * (grey - cv2.GaussianBlur(grey, (0, 0), case.sharpen_px))
     bgr = _colour(rng, grey, 1 - on_board, np.clip(on_board - on_sheet, 0, 1) * (1 - on_clip),
                   np.clip(on_sheet + on_clip, 0, 1))
     bgr = cv2.imdecode(cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, case.jpeg])[1], cv2.IMREAD_COLOR)

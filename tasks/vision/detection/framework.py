@@ -144,6 +144,23 @@ class CoarseAttempt:
             return -1
         return int(np.prod(self.order.lattice_shape))
 
+    def plate_likeness(self, plate: DotPlate) -> tuple[int, float, int]:
+        """How likely this band's lattice is the plate's, for choosing which refusal to report when
+        every band refuses: the most of its points in one window of the plate's shape, then how near
+        its spacing over its dots' size is to the plate's pitch over diameter (minus the absolute log
+        ratio), then its size (:attr:`score`). A lattice of clutter on a busy background can be
+        larger than the plate's, but rarely fills as much of a rows × cols window at the plate's
+        proportions."""
+        if self.order is None or self.order.lattice_index is None or len(self.order.lattice_index) < 2:
+            return (-1, -np.inf, self.score)
+        idx = self.order.lattice_index
+        c = self.circles.centres[idx]
+        d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=2)
+        np.fill_diagonal(d, np.inf)
+        ratio = float(np.median(d.min(axis=1) / (2.0 * self.circles.axes[idx, 0])))
+        want = plate.pitch_range_mm[0] / plate.dot_diameter_mm
+        return (self.order.window_dots, -abs(float(np.log(ratio / want))), self.score)
+
     def spacing_over_size(self) -> float:
         """Median over the grid's dots of the distance to the nearest other dot of the grid over
         the dot's diameter (major axis); NaN without a grid."""
@@ -325,7 +342,7 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
                                       expected_centres_px=expected_centres_px))
         if attempts[-1].ok or expected_centres_px is not None:  # a prior fixes the scale: one band
             break
-    attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.score)
+    attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.plate_likeness(plate))
     if not attempt.ok:
         joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = joined if joined is not None else attempt

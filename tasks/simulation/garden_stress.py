@@ -180,7 +180,11 @@ def _cast_shadow(rng: np.random.Generator, shape: tuple[int, int], centre_px: np
     inside = np.zeros(shape, np.uint8)
     cv2.fillPoly(inside, [np.round(poly * 16).astype(np.int32)], 255, cv2.LINE_AA, shift=4)
     cover = inside.astype(np.float32) / 255.0
-    if soft_px > 0.3:
+    if soft_px > 40.0:  # a wide blur on a 12 MP frame: at a tenth of the resolution (the edge is smooth)
+        small = cv2.resize(cover, (max(1, shape[1] // 10), max(1, shape[0] // 10)), interpolation=cv2.INTER_AREA)
+        cover = cv2.resize(cv2.GaussianBlur(small, (0, 0), soft_px / 10), (shape[1], shape[0]),
+                           interpolation=cv2.INTER_LINEAR)
+    elif soft_px > 0.3:
         cover = cv2.GaussianBlur(cover, (0, 0), soft_px)
     return 1.0 - (1.0 - darkest) * cover
 

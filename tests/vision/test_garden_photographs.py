@@ -16,7 +16,10 @@ from tasks.simulation.detector_stress import ISSUE_PLATE, StressCase, errors_up_
 from tasks.simulation.garden_stress import GardenCase, plate_coordinates, random_garden_case, render_garden_case
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.debug_image import BANNER_FAIL, draw_detection
+from tasks.vision.detection.framework import CoarseAttempt
+from tasks.vision.detection.grid import order_grid
 from tasks.vision.detection.lattice_reason import best_window_fill, incomplete_lattice_reason
+from tasks.vision.detection.rrht import CoarseCircles
 
 
 def _draw(regime: str, seed: int) -> GardenCase:
@@ -123,3 +126,24 @@ def test_window_fill_tells_a_missing_dot_from_a_plate_past_the_border():
     fill = best_window_fill(at_border, rc[two], 4, 3, (480, 640))
     assert (fill.missing_inside, fill.missing_outside) == (0, 4)
     assert incomplete_lattice_reason(fill, "4x2", 8, 4, 3).startswith("partial view")
+
+
+def _attempt(points: np.ndarray, diameter: float, plate) -> CoarseAttempt:
+    k = len(points)
+    axes = np.full((k, 2), diameter / 2)
+    circles = CoarseCircles(points, axes, np.zeros(k), np.ones(k), np.ones(k))
+    order = order_grid(points, plate, sizes=np.full(k, diameter), image_shape=(480, 640))
+    return CoarseAttempt(1, circles, order, order.reason, np.tile([30.0, 200.0], (k, 1)), (480, 640))
+
+
+def test_the_refusal_reported_is_the_most_plate_like_bands_not_the_largest():
+    """Two bands refuse: one grew a 2 x 8 lattice of 16 blobs (foliage, leaves in a row) whose 4 x 3
+    windows hold at most 6; the other the plate's lattice with one dot missing, 11 of 12. The plate's
+    band is the one whose reason is reported (the code before took the larger lattice)."""
+    plate = ISSUE_PLATE
+    clutter, _ = _grid_points(2, 8, origin=(40.0, 40.0), step=40.0)
+    dots, _ = _grid_points(4, 3, origin=(300.0, 200.0), step=30.0)
+    leaves, plate_band = _attempt(clutter, 27.0, plate), _attempt(np.delete(dots, 4, axis=0), 20.0, plate)
+    assert leaves.score > plate_band.score  # the larger lattice
+    assert plate_band.plate_likeness(plate) > leaves.plate_likeness(plate)
+    assert "11 of 12" in plate_band.reason

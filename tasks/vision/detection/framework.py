@@ -37,6 +37,7 @@ import numpy as np
 from tasks.machine.plate import DotPlate
 from tasks.vision.detection.blobs import contour_candidates
 from tasks.vision.detection.chaincode import filter_edges
+from tasks.vision.detection.completion import missed_dots
 from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.grid import order_grid
 from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder
@@ -132,6 +133,7 @@ class CoarseAttempt:
     reason: str
     levels: np.ndarray | None = None  # (K, 2) grey inside each circle and on the ring around it
     shape: tuple[int, int] = (0, 0)  # of the coarse image
+    image: np.ndarray | None = None  # the preprocessed coarse image searched
 
     @property
     def ok(self) -> bool:
@@ -226,13 +228,13 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
     def ordered(c: CoarseCircles, levels: np.ndarray) -> CoarseAttempt:
         if len(c) < 4:
             return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
-                                                  "dot grid", levels, pre.shape)
+                                                  "dot grid", levels, pre.shape, pre)
         t3 = time.perf_counter()
         order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
                            expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior,
                            levels=levels)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
-        return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape)
+        return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape, pre)
 
     circles, levels = verified(circles)
     attempt = ordered(circles, levels)
@@ -283,8 +285,40 @@ def join_bands(attempts: list[CoarseAttempt], plate: DotPlate, tm: dict, *, expe
                            expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=levels)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t0
         if order.ok:
-            return CoarseAttempt(finer.factor, merged, order, "", levels, finer.shape)
+            return CoarseAttempt(finer.factor, merged, order, "", levels, finer.shape, finer.image)
     return None
+
+
+def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict, *,
+                    expected_rotation_deg: float | None, mirrored: bool) -> CoarseAttempt | None:
+    """The grid from ``attempt``'s candidates and the dots found by looking again at the places its
+    best window lacks (:mod:`tasks.vision.detection.completion`), each passing the candidates'
+    appearance test; None when none is found or the lattice still refuses."""
+    order = attempt.order
+    if attempt.image is None or attempt.levels is None or order is None or order.lattice_index is None:
+        return None
+    t0 = time.perf_counter()
+    extra = missed_dots(attempt.image, attempt.circles, order.lattice_index, order.lattice_coords, attempt.levels,
+                        plate)
+    if len(extra):
+        fill_in, fill_out, levels = dot_appearance(attempt.image, extra.centres, extra.axes, extra.theta,
+                                                   plate.dark_dots)
+        keep = (fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside)
+        extra, levels = extra.subset(keep), levels[keep]
+    tm["completion"] = tm.get("completion", 0.0) + time.perf_counter() - t0
+    if not len(extra):
+        return None
+    merged, added = merge_candidates(attempt.circles, extra)
+    if not added.any():
+        return None
+    all_levels = np.concatenate([attempt.levels, levels[added]])
+    t1 = time.perf_counter()
+    again = order_grid(merged.centres, plate, sizes=2 * merged.axes[:, 0], image_shape=attempt.shape,
+                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=all_levels)
+    tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t1
+    if not again.ok:
+        return None
+    return CoarseAttempt(attempt.factor, merged, again, "", all_levels, attempt.shape, attempt.image)
 
 
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
@@ -346,6 +380,10 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     if not attempt.ok:
         joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = joined if joined is not None else attempt
+    if not attempt.ok and expected_centres_px is None:
+        completed = complete_window(attempt, plate, p, tm, expected_rotation_deg=expected_rotation_deg,
+                                    mirrored=mirrored)
+        attempt = completed if completed is not None else attempt
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

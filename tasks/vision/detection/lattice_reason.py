@@ -18,7 +18,7 @@ Frames: image px (u right, v down), whatever image the points are in.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,15 +28,19 @@ fraction of a lattice step inside the border (a plate dot's radius is a third of
 of 1.5 diameters, so the border cuts such a dot)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class WindowFill:
     """The best placement of the plate's window over a lattice: ``count`` of the plate's dots in it,
     ``missing_inside`` of its missing dots whose places lie inside the image, ``missing_outside`` of
-    them out of it (or cut by the border)."""
+    them out of it (or cut by the border); ``window`` (row, col, height, width) and ``missing_cells``
+    (K, 2) (row, col) in the lattice's coordinates less their minimum (they may be negative or
+    beyond the lattice's extent)."""
 
     count: int
     missing_inside: int
     missing_outside: int
+    window: tuple[int, int, int, int] = (0, 0, 0, 0)
+    missing_cells: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
 
 
 def best_window_fill(points: np.ndarray, lattice_coords: np.ndarray, rows: int, cols: int,
@@ -65,7 +69,8 @@ def best_window_fill(points: np.ndarray, lattice_coords: np.ndarray, rows: int, 
         for a0, b0 in zip(*np.nonzero(counts == top), strict=True):
             empty = np.argwhere(occ[a0 : a0 + h, b0 : b0 + w] == 0) + np.array([a0, b0])
             outside = _out_of_image(empty, coef, step, image_shape)
-            fill = WindowFill(top, int((~outside).sum()), int(outside.sum()))
+            fill = WindowFill(top, int((~outside).sum()), int(outside.sum()), (int(a0) - pad, int(b0) - pad, h, w),
+                              empty - pad)
             if best is None or (fill.count, -fill.missing_inside) > (best.count, -best.missing_inside):
                 best = fill
     return best

@@ -9,8 +9,11 @@ fitted to the window's dots: perspective and a lens bend a 4 × 3 window smoothl
 size (its neighbours') and its grey levels. There, and only there, a dark (light) region is
 thresholded halfway between the darkest part of the place and the paper around it (the lower
 quartile of a ring between the place and its neighbours: the shadowed side, if a shadow edge
-crosses it), and the region the place holds becomes a candidate if it has a dot's size, shape and
-appearance (the same test as every candidate, :func:`tasks.vision.detection.verify.dot_appearance`).
+crosses it), and the region the place holds becomes a candidate if it has a dot's size and shape
+and its disc looks like a dot (the disc half of the candidates' test,
+:func:`tasks.vision.detection.verify.dot_appearance`; its ring half, against the dot's own
+contrast, fails where a shadow edge crosses the ring, and the threshold here already measures the
+paper on the darker side).
 The lattice is then ordered again with it, and every check of a window applies as before
 (unique window, strays, the 2 × 2 cells closing): nothing is labelled that the lattice would not
 label had the candidate search found the dot.

@@ -292,8 +292,9 @@ def join_bands(attempts: list[CoarseAttempt], plate: DotPlate, tm: dict, *, expe
 def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict, *,
                     expected_rotation_deg: float | None, mirrored: bool) -> CoarseAttempt | None:
     """The grid from ``attempt``'s candidates and the dots found by looking again at the places its
-    best window lacks (:mod:`tasks.vision.detection.completion`), each passing the candidates'
-    appearance test; None when none is found or the lattice still refuses."""
+    best window lacks (:mod:`tasks.vision.detection.completion`), each passing the candidates' test
+    of the disc (at least ``min_fill_inside`` on the dot's side of the halfway grey); None when none
+    is found or the lattice still refuses."""
     order = attempt.order
     if attempt.image is None or attempt.levels is None or order is None or order.lattice_index is None:
         return None
@@ -301,9 +302,10 @@ def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams,
     extra = missed_dots(attempt.image, attempt.circles, order.lattice_index, order.lattice_coords, attempt.levels,
                         plate)
     if len(extra):
-        fill_in, fill_out, levels = dot_appearance(attempt.image, extra.centres, extra.axes, extra.theta,
-                                                   plate.dark_dots)
-        keep = (fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside)
+        fill_in, _, levels = dot_appearance(attempt.image, extra.centres, extra.axes, extra.theta, plate.dark_dots)
+        # the disc must look like a dot; the ring test is find_dot_at's, against the darker side of the
+        # paper around the place (a shadow edge through the ring fails the candidates' ring test)
+        keep = fill_in >= p.min_fill_inside
         extra, levels = extra.subset(keep), levels[keep]
     tm["completion"] = tm.get("completion", 0.0) + time.perf_counter() - t0
     if not len(extra):

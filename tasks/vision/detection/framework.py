@@ -13,9 +13,13 @@ at half and 6–16 px at full resolution; a band whose 1–99 % grey stretch wou
 (a few dots on a large even page) is searched again stretched to the far tails. Candidates must
 look like a filled dot on a clear ring of plate
 (:mod:`tasks.vision.detection.verify`); when the Hough circles give no grid, dark (light) regions
-against their local mean are added (:mod:`tasks.vision.detection.blobs`). A view without exactly one
-complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`): a wrong
-labelling is worse than none.
+against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,
+two neighbouring bands' candidates are ordered together, then the most plate-like band's lattice
+(:meth:`CoarseAttempt.plate_likeness`) is looked at again where its best window lacks one or two
+dots inside the image (:mod:`tasks.vision.detection.completion`). A view without exactly one
+complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`,
+:mod:`tasks.vision.detection.lattice_reason`), the most plate-like band's: a wrong labelling is
+worse than none.
 
 SYNOPSIS
 

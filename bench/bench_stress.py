@@ -5,6 +5,7 @@
     .venv/bin/python bench/bench_stress.py --case fisheye  # one case (repeatable)
     .venv/bin/python bench/bench_stress.py --random 200    # random cases: found / refused / wrongly labelled
     .venv/bin/python bench/bench_stress.py --random 80 --fisheye   # random fisheye frames (random_fisheye_case)
+    .venv/bin/python bench/bench_stress.py --random 20 --garden phone   # garden photographs (garden_stress)
     .venv/bin/python bench/bench_stress.py --hand-fit      # centres against the truth and a hand-fit-like rim ellipse
     .venv/bin/python bench/bench_stress.py --envelope 8,12,20,50,150,400 --tilts 0,30,50   # the issue's envelope (RRHT)
 
@@ -29,7 +30,9 @@ cv2.findCirclesGrid on the images both found.
 ``--random N`` draws N cases with :func:`tasks.simulation.detector_stress.random_case` (those whose dots are
 not all wholly in view are skipped) and counts, for RRHT and findCirclesGrid with clustering, the
 grids found and correctly labelled (RRHT: each dot within a quarter of its size of its own true
-centre, up to the grid's symmetry; OpenCV: one-to-one as above), refused, and found but wrong.
+centre, up to the grid's symmetry; OpenCV: one-to-one as above), refused, and found but wrong;
+findCirclesGrid without clustering too. ``--garden REGIME`` draws garden photographs of a sheet on a
+clipboard (:func:`tasks.simulation.garden_stress.random_garden_case`: phone, fisheye or distant).
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tasks.machine.plate import DotPlate
 from tasks.simulation.detector_stress import (
+    ISSUE_PLATE,
     STRESS_CASES,
     StressCase,
     errors_up_to_symmetry,
@@ -56,6 +60,7 @@ from tasks.simulation.detector_stress import (
     random_fisheye_case,
     render_stress_case,
 )
+from tasks.simulation.garden_stress import GARDEN_REGIMES, random_garden_case, render_garden_case
 from tasks.vision.detection import detect_grid
 
 DETECTORS = ("rrht", "blob", "hough", "cv2", "cv2+clustering")
@@ -86,20 +91,30 @@ def match_errors(found: np.ndarray | None, truth: np.ndarray, dot_px: float) -> 
     return d
 
 
-def random_run(n: int, seed: int, fisheye: bool = False) -> None:
-    """Random stress cases: found / refused / wrong for RRHT and cv2.findCirclesGrid with clustering."""
+def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = None) -> None:
+    """Random stress cases (``garden``: garden photographs of that regime, garden_stress.random_garden_case):
+    found / refused / wrong for RRHT and cv2.findCirclesGrid with and without clustering, same images."""
     rng = np.random.default_rng(seed)
-    counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in ("rrht", "cv2+clustering")}
+    detectors = ("rrht", "cv2+clustering", "cv2")
+    counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in detectors}
     errs: dict[str, list[float]] = {d: [] for d in counts}
     n_cases = 0
-    draw = random_fisheye_case if fisheye else random_case
     for i in range(n):
-        case = draw(rng, f"random-{i}")
-        if case is None:
-            continue
+        if garden:
+            case = random_garden_case(rng, f"{garden}-{i}", garden)
+            if case is None:
+                continue
+            image, truth = render_garden_case(case)
+            geometry, jpeg = case.geometry, case.jpeg
+            what = f"margin {case.sheet_margin_mm:4.1f}mm shadow {case.shadow:.2f}"
+        else:
+            geometry = (random_fisheye_case if fisheye else random_case)(rng, f"random-{i}")
+            if geometry is None:
+                continue
+            image, truth = render_stress_case(geometry)
+            what, jpeg = f"blur {geometry.defocus_px:.0f}", geometry.jpeg
         n_cases += 1
-        image, truth = render_stress_case(case)
-        plate = replace(case.plate, dark_dots=case.dark_dots)
+        plate = replace(ISSUE_PLATE, dark_dots=geometry.dark_dots)
         verdicts = []
         for d in counts:
             det = detect_grid(image, plate, "rrht") if d == "rrht" else None
@@ -108,17 +123,17 @@ def random_run(n: int, seed: int, fisheye: bool = False) -> None:
                 verdict = "refused" + (f" ({det.reason})" if det is not None else "")
             elif d == "rrht":
                 e = errors_up_to_symmetry(plate, c, truth)
-                verdict = "found" if e.max() < 0.25 * case.dot_px else "wrong"
+                verdict = "found" if e.max() < 0.25 * geometry.dot_px else "wrong"
                 errs[d] += [float(np.median(e))] if verdict == "found" else []
             else:
-                e = match_errors(c, truth, case.dot_px)
+                e = match_errors(c, truth, geometry.dot_px)
                 verdict = "found" if e is not None else "wrong"
                 errs[d] += [float(np.median(e))] if e is not None else []
             counts[d][verdict.split()[0]] += 1
             verdicts.append(f"{d} {verdict}")
-        print(f"{case.name:11s} {case.width}x{case.height} dot {case.dot_px:5.1f}px tilt {case.tilt_deg:4.1f} "
-              f"k1 {case.k1:+.2f} blur {case.defocus_px:.0f} jpeg {case.jpeg:2d} "
-              f"{'dark' if case.dark_dots else 'light'}: " + ", ".join(verdicts), flush=True)
+        print(f"{geometry.name:11s} {geometry.width}x{geometry.height} dot {geometry.dot_px:5.1f}px "
+              f"tilt {geometry.tilt_deg:4.1f} k1 {geometry.k1:+.2f} {what} jpeg {jpeg:2d} "
+              f"{'dark' if geometry.dark_dots else 'light'}: " + ", ".join(verdicts), flush=True)
     print(f"\n{n_cases} random cases in view (of {n} drawn, seed {seed})")
     for d, c in counts.items():
         med = statistics.median(errs[d]) if errs[d] else float("nan")
@@ -191,6 +206,8 @@ def main() -> None:
     ap.add_argument("--random-seed", type=int, default=0)
     ap.add_argument("--fisheye", action="store_true", help="random cases through the fisheye lens "
                     "(detector_stress.random_fisheye_case) instead")
+    ap.add_argument("--garden", choices=GARDEN_REGIMES, help="with --random: garden photographs of this regime "
+                    "(garden_stress.random_garden_case) instead")
     ap.add_argument("--hand-fit", action="store_true", help="RRHT's centres and ellipse centres against the true "
                     "centres and against a hand-fit-like rim ellipse, per case")
     ap.add_argument("--envelope", help="dot sizes px, comma-separated: RRHT on the envelope grid (envelope_run)")
@@ -207,7 +224,7 @@ def main() -> None:
         hand_fit_run([c for c in STRESS_CASES if not args.case or c.name in args.case])
         return
     if args.random:
-        random_run(args.random, args.random_seed, args.fisheye)
+        random_run(args.random, args.random_seed, args.fisheye, args.garden)
         return
     cases = [c for c in STRESS_CASES if not args.case or c.name in args.case]
     print(f"cv2 {cv2.__version__}, cv2 threads {cv2.getNumThreads()}; {len(cases)} cases × {args.seeds} seeds, "

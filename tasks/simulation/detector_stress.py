@@ -112,7 +112,7 @@ def plate_outline_px(case: StressCase, n_per_side: int = 40) -> np.ndarray:
     return project_points_ext(pts[:, :3], case.camera())
 
 
-def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], scale_px: float) -> np.ndarray:
+def smooth_noise(rng: np.random.Generator, shape: tuple[int, int], scale_px: float) -> np.ndarray:
     """Zero-mean, unit-σ smooth noise (H, W) float32 with features about ``scale_px`` across."""
     h, w = shape
     f = max(1, int(scale_px / 4))
@@ -168,9 +168,9 @@ def render_stress_case(case: StressCase) -> tuple[np.ndarray, np.ndarray]:
     cv2.fillPoly(mask, [np.round(plate_outline_px(case) * 16).astype(np.int32)], 255, cv2.LINE_AA, shift=4)
     scale = max(case.width, case.height)
     if case.texture:  # blotchy background (foliage, a desk) and paper grain on the sheet
-        blotch = _smooth_noise(rng, grey.shape, case.texture_scale * case.dot_px)
+        blotch = smooth_noise(rng, grey.shape, case.texture_scale * case.dot_px)
         bg = np.clip(90.0 + case.texture_contrast * blotch, 0, 255)
-        grain = 1.0 + 0.03 * _smooth_noise(rng, grey.shape, max(2.0, scale / 400))
+        grain = 1.0 + 0.03 * smooth_noise(rng, grey.shape, max(2.0, scale / 400))
         grey = np.where(mask > 0, grey * grain * case.sheet_shade, bg + (grey - 90.0))
     img = np.clip(grey, 0, 255).astype(np.uint8)
     if case.clutter:

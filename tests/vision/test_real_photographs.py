@@ -113,7 +113,10 @@ def test_the_block_on_a_large_even_page_is_found(photo, dark):
 
 @pytest.mark.parametrize("window, dark, reason", [
     ((0, 400), True, "extra dots: 9x8 lattice holds 15 complete 4x3 windows"),  # the whole black-dot grid
-    ((400, 800), False, "missing dots"),  # the white-dot grid, a tape measure across it
+    # the white-dot grid, a tape measure across it: the band reported is the one whose lattice fills a 4 x 3
+    # window (the most plate-like), and the grid beyond it is as much of the plate (the code before reported
+    # the largest lattice, "missing dots")
+    ((400, 800), False, "extra dots: 7 lattice-aligned dots beyond the 4x3 window"),
 ])
 def test_the_uncut_grids_are_refused_with_the_reason(photo, window, dark, reason):
     """Neither grid of the photograph is a 4 × 3 plate: a wrong labelling is worse than none."""

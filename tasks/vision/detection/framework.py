@@ -13,9 +13,13 @@ at half and 6–16 px at full resolution; a band whose 1–99 % grey stretch wou
 (a few dots on a large even page) is searched again stretched to the far tails. Candidates must
 look like a filled dot on a clear ring of plate
 (:mod:`tasks.vision.detection.verify`); when the Hough circles give no grid, dark (light) regions
-against their local mean are added (:mod:`tasks.vision.detection.blobs`). A view without exactly one
-complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`): a wrong
-labelling is worse than none.
+against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,
+two neighbouring bands' candidates are ordered together, then the most plate-like band's lattice
+(:meth:`CoarseAttempt.plate_likeness`) is looked at again where its best window lacks one or two
+dots inside the image (:mod:`tasks.vision.detection.completion`). A view without exactly one
+complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`,
+:mod:`tasks.vision.detection.lattice_reason`), the most plate-like band's: a wrong labelling is
+worse than none.
 
 SYNOPSIS
 
@@ -37,6 +41,7 @@ import numpy as np
 from tasks.machine.plate import DotPlate
 from tasks.vision.detection.blobs import contour_candidates
 from tasks.vision.detection.chaincode import filter_edges
+from tasks.vision.detection.completion import missed_dots
 from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.grid import order_grid
 from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder
@@ -132,6 +137,7 @@ class CoarseAttempt:
     reason: str
     levels: np.ndarray | None = None  # (K, 2) grey inside each circle and on the ring around it
     shape: tuple[int, int] = (0, 0)  # of the coarse image
+    image: np.ndarray | None = None  # the preprocessed coarse image searched
 
     @property
     def ok(self) -> bool:
@@ -143,6 +149,23 @@ class CoarseAttempt:
         if self.order is None:
             return -1
         return int(np.prod(self.order.lattice_shape))
+
+    def plate_likeness(self, plate: DotPlate) -> tuple[int, float, int]:
+        """How likely this band's lattice is the plate's, for choosing which refusal to report when
+        every band refuses: the most of its points in one window of the plate's shape, then how near
+        its spacing over its dots' size is to the plate's pitch over diameter (minus the absolute log
+        ratio), then its size (:attr:`score`). A lattice of clutter on a busy background can be
+        larger than the plate's, but rarely fills as much of a rows × cols window at the plate's
+        proportions."""
+        if self.order is None or self.order.lattice_index is None or len(self.order.lattice_index) < 2:
+            return (-1, -np.inf, self.score)
+        idx = self.order.lattice_index
+        c = self.circles.centres[idx]
+        d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=2)
+        np.fill_diagonal(d, np.inf)
+        ratio = float(np.median(d.min(axis=1) / (2.0 * self.circles.axes[idx, 0])))
+        want = plate.pitch_range_mm[0] / plate.dot_diameter_mm
+        return (self.order.window_dots, -abs(float(np.log(ratio / want))), self.score)
 
     def spacing_over_size(self) -> float:
         """Median over the grid's dots of the distance to the nearest other dot of the grid over
@@ -209,13 +232,13 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
     def ordered(c: CoarseCircles, levels: np.ndarray) -> CoarseAttempt:
         if len(c) < 4:
             return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
-                                                  "dot grid", levels, pre.shape)
+                                                  "dot grid", levels, pre.shape, pre)
         t3 = time.perf_counter()
         order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
                            expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior,
                            levels=levels)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
-        return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape)
+        return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape, pre)
 
     circles, levels = verified(circles)
     attempt = ordered(circles, levels)
@@ -266,8 +289,42 @@ def join_bands(attempts: list[CoarseAttempt], plate: DotPlate, tm: dict, *, expe
                            expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=levels)
         tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t0
         if order.ok:
-            return CoarseAttempt(finer.factor, merged, order, "", levels, finer.shape)
+            return CoarseAttempt(finer.factor, merged, order, "", levels, finer.shape, finer.image)
     return None
+
+
+def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict, *,
+                    expected_rotation_deg: float | None, mirrored: bool) -> CoarseAttempt | None:
+    """The grid from ``attempt``'s candidates and the dots found by looking again at the places its
+    best window lacks (:mod:`tasks.vision.detection.completion`), each passing the candidates' test
+    of the disc (at least ``min_fill_inside`` on the dot's side of the halfway grey); None when none
+    is found or the lattice still refuses."""
+    order = attempt.order
+    if attempt.image is None or attempt.levels is None or order is None or order.lattice_index is None:
+        return None
+    t0 = time.perf_counter()
+    extra = missed_dots(attempt.image, attempt.circles, order.lattice_index, order.lattice_coords, attempt.levels,
+                        plate)
+    if len(extra):
+        fill_in, _, levels = dot_appearance(attempt.image, extra.centres, extra.axes, extra.theta, plate.dark_dots)
+        # the disc must look like a dot; the ring test is find_dot_at's, against the darker side of the
+        # paper around the place (a shadow edge through the ring fails the candidates' ring test)
+        keep = fill_in >= p.min_fill_inside
+        extra, levels = extra.subset(keep), levels[keep]
+    tm["completion"] = tm.get("completion", 0.0) + time.perf_counter() - t0
+    if not len(extra):
+        return None
+    merged, added = merge_candidates(attempt.circles, extra)
+    if not added.any():
+        return None
+    all_levels = np.concatenate([attempt.levels, levels[added]])
+    t1 = time.perf_counter()
+    again = order_grid(merged.centres, plate, sizes=2 * merged.axes[:, 0], image_shape=attempt.shape,
+                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=all_levels)
+    tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t1
+    if not again.ok:
+        return None
+    return CoarseAttempt(attempt.factor, merged, again, "", all_levels, attempt.shape, attempt.image)
 
 
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
@@ -325,10 +382,14 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
                                       expected_centres_px=expected_centres_px))
         if attempts[-1].ok or expected_centres_px is not None:  # a prior fixes the scale: one band
             break
-    attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.score)
+    attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.plate_likeness(plate))
     if not attempt.ok:
         joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = joined if joined is not None else attempt
+    if not attempt.ok and expected_centres_px is None:
+        completed = complete_window(attempt, plate, p, tm, expected_rotation_deg=expected_rotation_deg,
+                                    mirrored=mirrored)
+        attempt = completed if completed is not None else attempt
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

@@ -35,6 +35,7 @@ from scipy.spatial import cKDTree
 from tasks.machine.plate import DotPlate
 from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder, fail_order, lattice_steps, rotation_deg
 from tasks.vision.detection.lattice_check import check_window, plate_like_strays
+from tasks.vision.detection.lattice_reason import best_window_fill, incomplete_lattice_reason
 from tasks.vision.detection.partial_view import order_by_prior
 
 __all__ = ["GridOrder", "build_lattice", "order_grid", "reduce_lattice"]
@@ -316,35 +317,24 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     filled = (occ >= 0).astype(int)
     cum = np.pad(filled.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
     shapes = {(rows, cols), (cols, rows)}
-    best_count, windows = -1, []
+    windows = []
     for h, w in shapes:
         if h > hh or w > ww:
             continue
         s = cum[h:, w:] - cum[:-h, w:] - cum[h:, :-w] + cum[:-h, :-w]  # (hh-h+1, ww-w+1)
-        best_count = max(best_count, int(s.max()))
         for a0, b0 in zip(*np.nonzero(s == need), strict=True):
             windows.append((h, w, int(a0), int(b0)))
     shape_txt = f"{hh}x{ww}"
     if not windows and expected_centres is not None and image_shape is not None:
         return order_by_prior(points, sel, g, plate, np.asarray(expected_centres, dtype=float), image_shape)
     if not windows:
-        found = len(sel)
-        near_border = False
-        if image_shape is not None and len(sel) > 1:
-            hi, wi = image_shape
-            p = points[sel]
-            nn = cKDTree(p).query(p, k=2)[0][:, 1]
-            margin = max(float(np.median(nn)), 5.0)  # the next row or column would be at the border or beyond
-            near_border = bool(((p[:, 0] < margin) | (p[:, 0] > wi - 1 - margin)
-                                | (p[:, 1] < margin) | (p[:, 1] > hi - 1 - margin)).any())
-        if near_border:
-            return fail_order(plate, f"partial view: plate partly out of the image ({shape_txt} lattice of "
-                                     f"{found} dots reaches the border, expected {rows}x{cols})", (hh, ww), (sel, g))
-        return fail_order(plate, f"missing dots: {shape_txt} lattice of {found} dots, at most "
-                                 f"{max(best_count, 0)} of {need} in a {rows}x{cols} window", (hh, ww), (sel, g))
+        fill = best_window_fill(points[sel], g, rows, cols, image_shape)
+        return fail_order(plate, incomplete_lattice_reason(fill, shape_txt, len(sel), rows, cols), (hh, ww),
+                          (sel, g), window_dots=fill.count)
     if len(windows) > 1:
         return fail_order(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
-                                 f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww), (sel, g))
+                                 f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww), (sel, g),
+                          window_dots=need)
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
     limit = max(2, (min(rows, cols) + 1) // 2)
@@ -353,10 +343,10 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
         strays = strays if like >= limit else 0
     if strays >= limit:
         return fail_order(plate, f"extra dots: {strays} lattice-aligned dots beyond the {rows}x{cols} "
-                                 f"window ({shape_txt} lattice)", (hh, ww), (sel, g))
+                                 f"window ({shape_txt} lattice)", (hh, ww), (sel, g), window_dots=need)
     win, irregular = check_window(points, sizes, occ[a0 : a0 + h, b0 : b0 + w])
     if irregular:
-        return fail_order(plate, irregular, (hh, ww), (sel, g))
+        return fail_order(plate, irregular, (hh, ww), (sel, g), window_dots=need)
     ab = np.stack(np.meshgrid(np.arange(h), np.arange(w), indexing="ij"), axis=-1).reshape(-1, 2)
     pidx = win.reshape(-1)
     pts = points[pidx]
@@ -383,4 +373,4 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
         ambiguous = len(cands) > 1 and diffs[order[1]] - diffs[order[0]] < 20.0
     index = np.full(need, -1)
     index[rc[:, 0] * cols + rc[:, 1]] = pidx
-    return GridOrder(True, "", index, ang, ambiguous, (hh, ww))
+    return GridOrder(True, "", index, ang, ambiguous, (hh, ww), window_dots=need)

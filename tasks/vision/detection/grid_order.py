@@ -28,15 +28,17 @@ class GridOrder:
     lattice_shape: tuple[int, int] = (0, 0)  # extent of the connected lattice found
     lattice_index: np.ndarray | None = None  # (L,) the input points of that lattice (on a refusal, for a drawing)
     lattice_coords: np.ndarray | None = None  # (L, 2) int their lattice coordinates
+    window_dots: int = -1  # the most points of the lattice in one rows × cols window (-1: not counted)
 
 
-def fail_order(plate: DotPlate, reason: str, shape=(0, 0), lattice: tuple[np.ndarray, np.ndarray] | None = None
-               ) -> GridOrder:
+def fail_order(plate: DotPlate, reason: str, shape=(0, 0), lattice: tuple[np.ndarray, np.ndarray] | None = None,
+               window_dots: int = -1) -> GridOrder:
     """A failed ordering of ``plate`` with its reason; ``shape`` is the lattice found, ``lattice`` its
-    points (L,) (indices of the input points) and their coordinates (L, 2)."""
+    points (L,) (indices of the input points) and their coordinates (L, 2); ``window_dots`` the most
+    of its points in one window of the plate's shape."""
     index, coords = lattice if lattice is not None else (None, None)
     return GridOrder(False, reason, np.full(plate.rows * plate.cols, -1), lattice_shape=shape,
-                     lattice_index=index, lattice_coords=coords)
+                     lattice_index=index, lattice_coords=coords, window_dots=window_dots)
 
 
 def lattice_steps(points_px: np.ndarray, row_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

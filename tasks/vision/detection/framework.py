@@ -9,8 +9,10 @@
 Without a scale hint the coarse search runs over bands of dot size until one yields the grid
 (:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
 1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 12 px up
-at half and 6–16 px at full resolution; a band whose 1–99 % grey stretch would clip a small tail
-(a few dots on a large even page) is searched again stretched to the far tails. Candidates must
+at half and 6–16 px at full resolution (the latter's Hough grid taken before the former's region
+contours when its dots are below the former's, :func:`small_dot_grid`); a band whose 1–99 % grey
+stretch would clip a small tail (a few dots on a large even page) is searched again stretched to
+the far tails. Candidates must
 look like a filled dot on a clear ring of plate
 (:mod:`tasks.vision.detection.verify`); when the Hough circles give no grid, dark (light) regions
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,

@@ -185,19 +185,13 @@ class CoarseAttempt:
         return coarse_to_full(self.circles.centres, self.factor), 2.0 * self.circles.axes[:, 0] * self.factor
 
 
-def coarse_search(image: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
-                  p: FrameworkParams, tm: dict, *, expected_rotation_deg: float | None, mirrored: bool,
-                  expected_centres_px: np.ndarray | None) -> CoarseAttempt:
-    """Downsample by ``factor``, find circles of d_min…d_max full-size px with the RRHT and order
-    them into the plate's grid (all on the coarse image); timings add up in ``tm``."""
-    kw = dict(expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres_px=expected_centres_px)
-    return BandSearch(image, plate, factor, d_min, d_max, p, tm, kw).full()
-
-
 class BandSearch:
-    """One band's :func:`coarse_search` in two steps: :meth:`hough`, the Hough circles alone on each
-    grey stretch (cheap), then :meth:`full`, the same search with the region-contour fallback where
-    the circles give no grid, continued from the first step's attempts (not searched again)."""
+    """One band's coarse search: downsample ``image`` by ``factor``, find circles of d_min…d_max
+    full-size px with the RRHT and order them into the plate's grid (all on the coarse image;
+    timings add up in ``tm``, ``kw`` are :func:`ordered_attempt`'s keywords). In two steps:
+    :meth:`hough`, the Hough circles alone on each grey stretch (cheap), then :meth:`full`, with the
+    region-contour fallback where the circles give no grid, continued from the first step's attempts
+    (not searched again)."""
 
     def __init__(self, image: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
                  p: FrameworkParams, tm: dict, kw: dict):

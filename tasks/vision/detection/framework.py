@@ -9,8 +9,10 @@
 Without a scale hint the coarse search runs over bands of dot size until one yields the grid
 (:func:`search_bands`): dots of 1/128–1/14 of the image's longer side (every campaign view), then
 1/28–1/3.5 on a 4× coarser image (a grid filling a photograph), then, on large images, 12 px up
-at half and 6–16 px at full resolution; a band whose 1–99 % grey stretch would clip a small tail
-(a few dots on a large even page) is searched again stretched to the far tails. Candidates must
+at half and 6–16 px at full resolution (the latter's Hough grid taken before the former's region
+contours when its dots are below the former's, :func:`small_dot_grid`); a band whose 1–99 % grey
+stretch would clip a small tail (a few dots on a large even page) is searched again stretched to
+the far tails. Candidates must
 look like a filled dot on a clear ring of plate
 (:mod:`tasks.vision.detection.verify`); when the Hough circles give no grid, dark (light) regions
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,
@@ -183,74 +185,113 @@ class CoarseAttempt:
         return coarse_to_full(self.circles.centres, self.factor), 2.0 * self.circles.axes[:, 0] * self.factor
 
 
-def coarse_search(image: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
-                  p: FrameworkParams, tm: dict, *, expected_rotation_deg: float | None, mirrored: bool,
-                  expected_centres_px: np.ndarray | None) -> CoarseAttempt:
-    """Downsample by ``factor``, find circles of d_min…d_max full-size px with the RRHT and order
-    them into the plate's grid (all on the coarse image); timings add up in ``tm``."""
-    t0 = time.perf_counter()
-    small = downsample(image, factor)
-    pre, stretch = auto_gamma(small, p.median_ksize)
-    tm["preprocess"] = tm.get("preprocess", 0.0) + time.perf_counter() - t0
-    attempt = search_preprocessed(pre, plate, factor, d_min, d_max, p, tm, expected_rotation_deg=expected_rotation_deg,
-                                  mirrored=mirrored, expected_centres_px=expected_centres_px)
-    if not stretch["tails_differ"]:
-        return attempt
-    # a few dots on a large even page lie beyond the 1–99 % stretch (clipped, a faint halo round
-    # them can give the edges): search again stretched to the far tails, and of two grids keep the
-    # one whose spacing over its dots' size is nearer the plate's
-    t0 = time.perf_counter()
-    pre, _ = auto_gamma(small, p.median_ksize, small_tails=True)
-    tm["preprocess"] = tm.get("preprocess", 0.0) + time.perf_counter() - t0
-    retry = search_preprocessed(pre, plate, factor, d_min, d_max, p, tm, expected_rotation_deg=expected_rotation_deg,
-                                mirrored=mirrored, expected_centres_px=expected_centres_px)
-    if attempt.ok and retry.ok:
-        want = np.log(plate.pitch_range_mm[0] / plate.dot_diameter_mm)
-        return min((attempt, retry), key=lambda a: abs(np.log(a.spacing_over_size()) - want))
-    return retry if retry.ok or retry.score > attempt.score else attempt
+class BandSearch:
+    """One band's coarse search: downsample ``image`` by ``factor``, find circles of d_min…d_max
+    full-size px with the RRHT and order them into the plate's grid (all on the coarse image;
+    timings add up in ``tm``, ``kw`` are :func:`ordered_attempt`'s keywords). In two steps:
+    :meth:`hough`, the Hough circles alone on each grey stretch (cheap), then :meth:`full`, with the
+    region-contour fallback where the circles give no grid, continued from the first step's attempts
+    (not searched again)."""
+
+    def __init__(self, image: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
+                 p: FrameworkParams, tm: dict, kw: dict):
+        self.image, self.plate, self.factor, self.d_min, self.d_max = image, plate, factor, d_min, d_max
+        self.p, self.tm, self.kw = p, tm, kw
+        self._hough: list[CoarseAttempt] | None = None
+
+    def hough(self) -> list[CoarseAttempt]:
+        """The band's attempts from the Hough circles alone: one per grey stretch (a second where
+        :func:`tasks.vision.detection.preprocess.keep_small_tails` says the far tails differ)."""
+        if self._hough is None:
+            t0 = time.perf_counter()
+            small = downsample(self.image, self.factor)
+            pre, stretch = auto_gamma(small, self.p.median_ksize)
+            self.tm["preprocess"] = self.tm.get("preprocess", 0.0) + time.perf_counter() - t0
+            self._hough = [hough_attempt(pre, self.plate, self.factor, self.d_min, self.d_max, self.p, self.tm,
+                                         **self.kw)]
+            if stretch["tails_differ"]:
+                # a few dots on a large even page lie beyond the 1–99 % stretch (clipped, a faint halo
+                # round them can give the edges): search again stretched to the far tails
+                t0 = time.perf_counter()
+                pre, _ = auto_gamma(small, self.p.median_ksize, small_tails=True)
+                self.tm["preprocess"] = self.tm.get("preprocess", 0.0) + time.perf_counter() - t0
+                self._hough.append(hough_attempt(pre, self.plate, self.factor, self.d_min, self.d_max, self.p,
+                                                 self.tm, **self.kw))
+        return self._hough
+
+    def hough_is_final(self) -> bool:
+        """True when :meth:`full` would return the Hough circles' grid: every stretch found it, so no
+        region contours are added."""
+        return all(a.ok for a in self.hough())
+
+    def full(self) -> CoarseAttempt:
+        """The band's result: each stretch's attempt with region contours where its circles give no
+        grid; of two grids found, the one whose spacing over its dots' size is nearer the plate's."""
+        done = [a if a.ok or not self.p.contour_fallback else
+                with_regions(a, self.plate, self.d_min, self.d_max, self.p, self.tm, **self.kw) for a in self.hough()]
+        if len(done) == 1:
+            return done[0]
+        attempt, retry = done
+        if attempt.ok and retry.ok:
+            want = np.log(self.plate.pitch_range_mm[0] / self.plate.dot_diameter_mm)
+            return min((attempt, retry), key=lambda a: abs(np.log(a.spacing_over_size()) - want))
+        return retry if retry.ok or retry.score > attempt.score else attempt
 
 
-def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float,
-                        p: FrameworkParams, tm: dict, *, expected_rotation_deg: float | None, mirrored: bool,
-                        expected_centres_px: np.ndarray | None) -> CoarseAttempt:
-    """:func:`coarse_search` on the preprocessed coarse image ``pre`` (downsampled by ``factor``)."""
+def ordered_attempt(pre: np.ndarray, c: CoarseCircles, levels: np.ndarray, plate: DotPlate, factor: int, tm: dict, *,
+                    expected_rotation_deg: float | None, mirrored: bool, expected_centres_px: np.ndarray | None
+                    ) -> CoarseAttempt:
+    """The attempt of ordering the candidates ``c`` (coarse px on ``pre``, grey levels (K, 2)) into the grid."""
+    if len(c) < 4:
+        return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
+                                              "dot grid", levels, pre.shape, pre)
+    prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
+    t3 = time.perf_counter()
+    order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
+                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior,
+                       levels=levels)
+    tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
+    return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape, pre)
+
+
+def verified(pre: np.ndarray, c: CoarseCircles, dark_dots: bool, p: FrameworkParams
+             ) -> tuple[CoarseCircles, np.ndarray]:
+    """The candidates of ``c`` that look like a dot on ``pre`` (:mod:`tasks.vision.detection.verify`)
+    and their grey levels (K, 2)."""
+    fill_in, fill_out, levels = dot_appearance(pre, c.centres, c.axes, c.theta, dark_dots)
+    keep = (fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside)
+    return c.subset(keep), levels[keep]
+
+
+def hough_attempt(pre: np.ndarray, plate: DotPlate, factor: int, d_min: float, d_max: float, p: FrameworkParams,
+                  tm: dict, **kw) -> CoarseAttempt:
+    """The RRHT circles of d_min…d_max full-size px on the preprocessed coarse image ``pre``
+    (downsampled by ``factor``) that look like dots, ordered into the plate's grid."""
     t1 = time.perf_counter()
     em = canny_edges(pre)
     edges, _ = filter_edges(em.edges, d_min / factor, d_max / factor)
     tm["edges"] = tm.get("edges", 0.0) + time.perf_counter() - t1
-    r_min, r_max = d_min / factor / 2, d_max / factor / 2
     circles = CoarseCircles.empty()
     if edges.any():
-        circles = rrht_circles(em, edges, plate.dark_dots, r_min, r_max, p.rrht, seed=p.seed, timings=tm)
-    prior = None if expected_centres_px is None else full_to_coarse(expected_centres_px, factor)
+        circles = rrht_circles(em, edges, plate.dark_dots, d_min / factor / 2, d_max / factor / 2, p.rrht,
+                               seed=p.seed, timings=tm)
+    circles, levels = verified(pre, circles, plate.dark_dots, p)
+    return ordered_attempt(pre, circles, levels, plate, factor, tm, **kw)
 
-    def verified(c: CoarseCircles) -> tuple[CoarseCircles, np.ndarray]:  # and their grey levels (K, 2)
-        fill_in, fill_out, levels = dot_appearance(pre, c.centres, c.axes, c.theta, plate.dark_dots)
-        keep = (fill_in >= p.min_fill_inside) & (fill_out >= p.min_fill_outside)
-        return c.subset(keep), levels[keep]
 
-    def ordered(c: CoarseCircles, levels: np.ndarray) -> CoarseAttempt:
-        if len(c) < 4:
-            return CoarseAttempt(factor, c, None, f"found {len(c)} dot-like targets, not a {plate.rows}x{plate.cols} "
-                                                  "dot grid", levels, pre.shape, pre)
-        t3 = time.perf_counter()
-        order = order_grid(c.centres, plate, sizes=2 * c.axes[:, 0], image_shape=pre.shape,
-                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres=prior,
-                           levels=levels)
-        tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t3
-        return CoarseAttempt(factor, c, order, order.reason, levels, pre.shape, pre)
-
-    circles, levels = verified(circles)
-    attempt = ordered(circles, levels)
-    if attempt.ok or not p.contour_fallback:
-        return attempt
+def with_regions(attempt: CoarseAttempt, plate: DotPlate, d_min: float, d_max: float, p: FrameworkParams, tm: dict,
+                 **kw) -> CoarseAttempt:
+    """``attempt`` (the Hough circles' of a band, which give no grid) with the dark (light) regions of
+    d_min…d_max full-size px of its coarse image added (:mod:`tasks.vision.detection.blobs`)."""
+    pre, factor, circles, levels = attempt.image, attempt.factor, attempt.circles, attempt.levels
     t4 = time.perf_counter()
-    blobs, blob_levels = verified(contour_candidates(pre, plate.dark_dots, 2 * r_min, 2 * r_max))
+    blobs, blob_levels = verified(pre, contour_candidates(pre, plate.dark_dots, d_min / factor, d_max / factor),
+                                  plate.dark_dots, p)
     merged, added = merge_candidates(circles, blobs)
     tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t4
     if len(merged) == len(circles):
         return attempt
-    retry = ordered(merged, np.concatenate([levels, blob_levels[added]]))
+    retry = ordered_attempt(pre, merged, np.concatenate([levels, blob_levels[added]]), plate, factor, tm, **kw)
     best = retry if retry.ok or retry.score >= attempt.score else attempt
     if best.ok:
         return best
@@ -259,7 +300,8 @@ def search_preprocessed(pre: np.ndarray, plate: DotPlate, factor: int, d_min: fl
     more, also = merge_candidates(merged, blobs.subset(~added), other_sizes=True)
     if not also.any():
         return best
-    last = ordered(more, np.concatenate([levels, blob_levels[added], blob_levels[~added][also]]))
+    last = ordered_attempt(pre, more, np.concatenate([levels, blob_levels[added], blob_levels[~added][also]]), plate,
+                           factor, tm, **kw)
     return last if last.ok or last.score >= best.score else best
 
 
@@ -347,6 +389,24 @@ def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: boo
                          np.concatenate([first.rim_ratio, add.rim_ratio])), new
 
 
+def small_dot_grid(band: BandSearch, finer: BandSearch) -> CoarseAttempt | None:
+    """The grid of ``finer`` (the full-resolution band of dots from :data:`SMALL_DOT_PX`), taken before
+    ``band``'s region contours are searched, when the Hough circles of both show the dots are below
+    ``band``'s: ``band``'s circles give no grid and ``finer``'s do, of a median area-equivalent diameter
+    (2 √(a b), full-size px) under ``band``'s smallest; else None (``band`` goes on as before).
+
+    On a 12 MP photograph with 8 px dots the region contours of the half-resolution band (3 MP, the
+    paper texture's thousands of regions) cost as much as the full-resolution search that finds the
+    grid; the contours' size test is by area, and a foreshortened dot is smaller by area than across."""
+    if band.hough_is_final() or not finer.hough_is_final():
+        return None
+    found = finer.full()  # the Hough circles' grid, no contours
+    idx = found.order.index[found.order.index >= 0]
+    axes = found.circles.axes[idx]
+    d_px = 2.0 * np.sqrt(axes[:, 0] * axes[:, 1]) * found.factor
+    return found if float(np.median(d_px)) < band.d_min else None
+
+
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
                 px_per_mm_hint: float | None = None, correct_perspective: bool = True,
                 mirrored: bool = False, expected_centres_px: np.ndarray | None = None,
@@ -374,12 +434,16 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
                                      timings_s=tm, **kw)
 
     image = check_image(image)
+    kw = dict(expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, expected_centres_px=expected_centres_px)
+    bands = [BandSearch(image, plate, factor, d_min, d_max, p, tm, kw) for factor, d_min, d_max in
+             search_bands(image.shape, plate, px_per_mm_hint, p.coarse_target_diameter_px, p.coarse_width_px)]
     attempts: list[CoarseAttempt] = []
-    for factor, d_min, d_max in search_bands(image.shape, plate, px_per_mm_hint, p.coarse_target_diameter_px,
-                                             p.coarse_width_px):
-        attempts.append(coarse_search(image, plate, factor, d_min, d_max, p, tm,
-                                      expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
-                                      expected_centres_px=expected_centres_px))
+    for k, band in enumerate(bands):
+        small = small_dot_grid(band, bands[3]) if k == 2 and len(bands) == 4 else None  # the small-dot pair
+        if small is not None:
+            attempts.append(small)
+            break
+        attempts.append(band.full())
         if attempts[-1].ok or expected_centres_px is not None:  # a prior fixes the scale: one band
             break
     attempt = attempts[-1] if attempts[-1].ok else max(attempts, key=lambda a: a.plate_likeness(plate))

@@ -99,7 +99,7 @@ def keep_small_tails(cdf: np.ndarray, lo: float, hi: float) -> tuple[float, floa
     the dots' size). Where the dots make more than 1 % of the image, as on every campaign view,
     the tails lie within the range and nothing changes. Where they differ, the coarse search
     searches the band again with them and keeps the better of the two grids
-    (:func:`tasks.vision.detection.framework.coarse_search`).
+    (:class:`tasks.vision.detection.framework.BandSearch`).
     """
     lo_tail = float(np.searchsorted(cdf, TAIL_FRACTION))
     hi_tail = float(np.searchsorted(cdf, 1.0 - TAIL_FRACTION))

@@ -50,7 +50,7 @@ from tasks.vision.poses import estimate_poses
 
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
 # every cache key of the measure flow.
-VISION_CODE_VERSION = "vision-8"
+VISION_CODE_VERSION = "vision-9"
 FIX_K3 = True
 """Camera self-calibration keeps k3 at 0 (four distortion coefficients). The calibration targets'
 views stay off the field's edges, so k3 is barely determined there (with it free, camera 1's k3 came

@@ -585,3 +585,19 @@ def test_pixel_edge_fit_holds_the_blur_gradient_of_a_tilted_defocused_plate():
     in_focus, in_focus_rms = compression(sharp, True)
     assert one_blur < -0.15 and one_blur_rms > 1.8 * in_focus_rms  # the effect is there without the gradient
     assert abs(held - in_focus) < 0.05 and held_rms < 1.25 * in_focus_rms
+
+
+def test_blur_gradients_follow_a_smooth_blur_field():
+    """The image's blur field from the dots' own blurs: σ² a quadratic in position (a plane with
+    fewer than 9 dots) fitted once more without outliers; ∇s = ∇σ²/(2σ) at each dot."""
+    from tasks.vision.detection.edge_fit import blur_gradients
+
+    rng = np.random.default_rng(3)
+    centres = rng.uniform(200.0, 1800.0, (49, 2))
+    s2 = 1.0 + 4e-4 * centres[:, 0] - 2e-4 * centres[:, 1] + 1e-7 * centres[:, 0] ** 2
+    sigma = np.sqrt(s2)
+    sigma[5] = 4.0  # one dot blurred by a smudge: left out of the field
+    grad = blur_gradients(centres, sigma, np.arange(49))
+    expected = np.stack([4e-4 + 2e-7 * centres[:, 0], np.full(49, -2e-4)], axis=1) / (2 * np.sqrt(s2[:, None]))
+    np.testing.assert_allclose(np.delete(grad, 5, axis=0), np.delete(expected, 5, axis=0), rtol=1e-6, atol=1e-12)
+    assert np.allclose(blur_gradients(centres[:2], sigma[:2], np.arange(2)), 0.0)  # too few dots: no field

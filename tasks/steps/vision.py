@@ -34,6 +34,7 @@ from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate
 from tasks.vision.pipeline import (
     FIX_K3,
+    POSES_VERSION,
     PRIOR_COLUMNS,
     SELF_CALIBRATION_STAGES,
     SELF_CALIBRATION_VERSION,
@@ -92,7 +93,7 @@ def _calibrate_key(context: TaskRunContext, p: dict[str, Any]) -> str:
 def _poses_key(context: TaskRunContext, p: dict[str, Any]) -> str:
     cams = {c: m.to_dict() for c, m in p["cameras"].items()}
     plates = {c: pl.to_dict() for c, pl in p["plates"].items()}
-    return "poses-" + content_key(p["dots"], p["detections"], cams, plates)
+    return "poses-" + content_key(p["dots"], p["detections"], cams, plates, POSES_VERSION)
 
 
 @task(name="read-images-table", cache_policy=NO_CACHE, persist_result=False)

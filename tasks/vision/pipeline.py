@@ -42,6 +42,7 @@ from tasks.vision.camera_calibration import (
     nominal_camera,
     trial_views,
 )
+from tasks.vision.centre_bias import unbiased_dots
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.grid_order import rotation_deg
 from tasks.vision.detection.perspective import project
@@ -50,7 +51,7 @@ from tasks.vision.poses import estimate_poses
 
 # Bump when a change in detection, calibration or pose code changes their results: it is part of
 # every cache key of the measure flow.
-VISION_CODE_VERSION = "vision-8"
+VISION_CODE_VERSION = "vision-9"
 FIX_K3 = True
 """Camera self-calibration keeps k3 at 0 (four distortion coefficients). The calibration targets'
 views stay off the field's edges, so k3 is barely determined there (with it free, camera 1's k3 came
@@ -59,9 +60,12 @@ the r⁶ term extrapolates into the part of the field that the X sweep's ends us
 about y read there by PnP was off by up to 64″ at X = ±25 mm, which became X's εy profile (and a
 true −0.041 is 1.8·10⁻⁵ of the radius at the field's corner: 0.008 px at the demo size, 0.03 px at
 full size). ``bench/x_sweep_tilt.py`` measures it."""
+POSES_VERSION = "poses-2"
+"""Part of the poses' cache key (with VISION_CODE_VERSION): bump when :func:`plate_poses` would
+return something else for the same dots and intrinsics."""
 SELF_CALIBRATION_STAGES = (CALIBRATION_STAGE, *MACHINE_STAGES)
 """The stages whose images :func:`calibrate_cameras` reads."""
-SELF_CALIBRATION_VERSION = "self-calibration-2"
+SELF_CALIBRATION_VERSION = "self-calibration-3"
 """Part of the self-calibration's cache key (with VISION_CODE_VERSION, which also keys detection):
 bump when :func:`calibrate_cameras` would return something else for the same dots."""
 DOT_COLUMNS = ("image_id", "camera", "row", "col", "u_px", "v_px", "residual_rms_px", "support_ratio", "detector")
@@ -230,11 +234,23 @@ def calibrate_cameras(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
     refined on those views and the camera's images of its measured plate in the linear axes' sweeps
     and the five-axis poses (:func:`tasks.vision.camera_calibration.machine_views`, each view with a
     free pose; :mod:`tasks.vision.intrinsics_refinement` says why). A camera without such images
-    (camera 2: the A sweep turns plate b about the field's centre) keeps the joint fit. Returns the
+    (camera 2: the A sweep turns plate b about the field's centre) keeps the joint fit. All of it
+    runs twice: the second time on the dot centres without the lens's share of their bias
+    (:func:`tasks.vision.centre_bias.unbiased_dots`, computed with the first estimate). Returns the
     camera_calibration table (one row per trial and a "joint" row per camera: the best estimate and
     the views it was fitted on) and {camera: calibrated intrinsics}. dots: the campaign's dots
     table (the images the fit does not read may be left out).
     """
+    _, first = _self_calibration(dots, images, metadata)
+    used = images[images["stage"].isin(SELF_CALIBRATION_STAGES)]
+    plate_of = pd.Series(plate_names(metadata, used).to_numpy(), index=used["image_id"].to_numpy())
+    unbiased = unbiased_dots(dots[dots["image_id"].isin(used["image_id"])], plate_of, first, campaign_plates(metadata))
+    return _self_calibration(unbiased, images, metadata)
+
+
+def _self_calibration(dots: pd.DataFrame, images: pd.DataFrame, metadata: dict
+                      ) -> tuple[pd.DataFrame, dict[str, CameraModel]]:
+    """One pass of :func:`calibrate_cameras` on these dot centres."""
     targets = plates_by_camera(metadata, CALIBRATION_STAGE)
     measured = plates_by_camera(metadata)
     sweeps = nominal_machine(metadata).linear_axes
@@ -290,9 +306,11 @@ def plate_poses(dots: pd.DataFrame, detections: pd.DataFrame, cameras: dict[str,
     """PnP pose of every image with a detected grid; images without one keep their status.
 
     detections: :func:`detect_images`' per-image table (its ``plate`` names the plate each image
-    shows). plates: {plate name: DotPlate}. Poses are T_cam_plate of that plate (mm).
+    shows). plates: {plate name: DotPlate}. Poses are T_cam_plate of that plate (mm), from the dot
+    centres without the lens's share of their bias (:func:`tasks.vision.centre_bias.unbiased_dots`).
     """
     plate_of = detections.set_index("image_id")["plate"]
+    dots = unbiased_dots(dots, plate_of, cameras, plates)
     if len(dots):
         parts = [estimate_poses(g, cameras, plates[name])
                  for name, g in dots.groupby(dots["image_id"].map(plate_of), sort=False)]

@@ -58,6 +58,7 @@ class EdgeFitParams:
     outlier_iteration: int = 1  # drop outlier pixels here; test the centres' convergence from here on
     outlier_sigmas: float = 4.0
     max_shift_px: float = 0.25  # a fit that moves the centre further than this is not trusted
+    blur_gradient: bool = True  # hold each dot's blur gradient from the image's blur field (module docstring)
 
 
 @dataclass
@@ -95,9 +96,9 @@ def _unpack(q):
 
 
 @njit(inline="always", **_COMPILED)
-def _pixel(px, py, cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv, grad):
-    """Grey level (DN) of one dot's model (as :func:`_unpack` gives it) at the pixel centre (px, py);
-    writes ∂I/∂params into grad (10,)."""
+def _pixel(px, py, cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv, hu, hv, grad):
+    """Grey level (DN) of one dot's model (as :func:`_unpack` gives it, with the blur's gradient
+    (hu, hv) px/px held) at the pixel centre (px, py); writes ∂I/∂params into grad (10,)."""
     dx = px - cx
     dy = py - cy
     ia2 = ia * ia
@@ -108,48 +109,66 @@ def _pixel(px, py, cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv, grad):
     m = d * igr * igr
     d_u = ua * (k - m * ia2)
     d_v = vb * (k - m * ib2)
+    # the blur here, s + e, and the part of its rim's inward shift (s + e)²/(2ρ) beyond the dot's
+    # own s²/(2ρ) (that part only shrinks the axes): ρ = √(ab)
+    s = 1.0 / i_s
+    e = hu * dx + hv * dy
+    sp = max(s + e, 0.05)
+    i_rho = math.sqrt(ia * ib)
+    corr = (sp * sp - s * s) * 0.5 * i_rho
+    deff = d + corr
     gain = 1.0 + gu * dx + gv * dy
-    z = -d * i_s
+    z = -deff / sp
     p_in = 0.5 * math.erfc(-z * _SQRT1_2)  # Φ(z)
     level = l_out + (l_in - l_out) * p_in
     dens = gain * (l_in - l_out) * math.exp(-0.5 * z * z) * _INV_SQRT_2PI  # ∂I/∂z
-    di_dd = -dens * i_s
-    grad[0] = di_dd * (st * d_v - ct * d_u) - gu * level
-    grad[1] = -di_dd * (st * d_u + ct * d_v) - gv * level
-    grad[2] = di_dd * ua * u * ((2.0 * m * ia2 - k) * ia)
-    grad[3] = di_dd * vb * v * ((2.0 * m * ib2 - k) * ib)
+    di_dd = -dens / sp
+    dz_dc = i_rho - deff / (sp * sp)  # ∂z/∂(cx, cy) through the blur, per unit of (hu, hv)
+    grad[0] = di_dd * (st * d_v - ct * d_u) + dens * hu * dz_dc - gu * level
+    grad[1] = -di_dd * (st * d_u + ct * d_v) + dens * hv * dz_dc - gv * level
+    grad[2] = di_dd * ua * u * ((2.0 * m * ia2 - k) * ia) + dens * 0.5 * ia * corr / sp
+    grad[3] = di_dd * vb * v * ((2.0 * m * ib2 - k) * ib) + dens * 0.5 * ib * corr / sp
     grad[4] = di_dd * (v * d_u - u * d_v)
     grad[5] = gain * p_in
     grad[6] = gain - grad[5]
-    grad[7] = dens * d * (i_s * i_s)
+    grad[7] = dens * (deff / (sp * sp) - (sp - s) * i_rho / sp)
     grad[8] = dx * level
     grad[9] = dy * level
     return gain * level
 
 
 @njit(**_COMPILED)
-def _model_values(params, x, y, value, jac, with_jacobian):
+def _model_values(params, blur_gradient, x, y, value, jac, with_jacobian):
     grad = np.empty(N_PARAMS)
     for k in range(x.shape[0]):
         cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv = _unpack(params[k])
+        hu, hv = blur_gradient[k, 0], blur_gradient[k, 1]
         for i in range(x.shape[1]):
-            value[k, i] = _pixel(x[k, i], y[k, i], cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv, grad)
+            value[k, i] = _pixel(x[k, i], y[k, i], cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv, hu, hv, grad)
             if with_jacobian:
                 jac[k, :, i] = grad
 
 
-def dot_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, *, with_jacobian: bool = False):
+def dot_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, *, with_jacobian: bool = False,
+              blur_gradient: np.ndarray | None = None):
     """Grey levels (DN) of the model at pixel centres x, y (K, M) for parameters (K, 10);
     with_jacobian: also the (K, 10, M) derivatives (analytic), parameter-major so that each
-    parameter's row is contiguous."""
+    parameter's row is contiguous. blur_gradient: (K, 2) ∇s (px/px) held in each dot (default 0)."""
     params, x, y = (np.ascontiguousarray(v, dtype=float) for v in (params, x, y))
     value = np.empty(x.shape)
     jac = np.empty((x.shape[0], N_PARAMS, x.shape[1]) if with_jacobian else (0, N_PARAMS, 0))
-    _model_values(params, x, y, value, jac, with_jacobian)
+    _model_values(params, _gradients(blur_gradient, len(params)), x, y, value, jac, with_jacobian)
     return (value, jac) if with_jacobian else value
 
 
-def _normal_equations(params, x, y, z, w):
+def _gradients(blur_gradient: np.ndarray | None, n_dots: int) -> np.ndarray:
+    """(K, 2) contiguous float blur gradients, zeros when None."""
+    if blur_gradient is None:
+        return np.zeros((n_dots, 2))
+    return np.ascontiguousarray(blur_gradient, dtype=float).reshape(n_dots, 2)
+
+
+def _normal_equations(params, x, y, z, w, blur_gradient=None):
     """Model values (K, M) at the pixels of weight 1 (NaN elsewhere: they are not evaluated), and
     per dot JᵀWJ (K, 10, 10), JᵀWr (K, 10) and the cost Σ w r² (K,), r = model − z; w holds 0/1
     pixel weights. The dots are shared among :func:`kernel_threads` threads (each dot's numbers
@@ -159,12 +178,14 @@ def _normal_equations(params, x, y, z, w):
     jtj = np.empty((n_dots, N_PARAMS, N_PARAMS))
     jtr = np.empty((n_dots, N_PARAMS))
     cost = np.zeros(n_dots)
-    over_ranges(lambda lo, hi: _normal_equations_into(params, x, y, z, w, lo, hi, value, jtj, jtr, cost), n_dots)
+    h = _gradients(blur_gradient, n_dots)
+    over_ranges(lambda lo, hi: _normal_equations_into(params, h, x, y, z, w, lo, hi, value, jtj, jtr, cost), n_dots)
     return value, jtj, jtr, cost
 
 
 @njit(**_COMPILED)
-def _normal_equations_into(params, x, y, z, w, lo, hi, value, jtj, jtr, cost):  # pragma: no cover - compiled
+def _normal_equations_into(params, blur_gradient, x, y, z, w, lo, hi, value, jtj, jtr,
+                           cost):  # pragma: no cover - compiled
     """:func:`_normal_equations` of dots lo … hi − 1, written into its outputs."""
     n_px = x.shape[1]
     grad = np.empty(N_PARAMS)
@@ -173,13 +194,14 @@ def _normal_equations_into(params, x, y, z, w, lo, hi, value, jtj, jtr, cost):  
     res_w = np.empty(n_px)
     for k in range(lo, hi):
         cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv = _unpack(params[k])
+        hu, hv = blur_gradient[k, 0], blur_gradient[k, 1]
         for i in range(n_px):
             if w[k, i] == 0.0:
                 value[k, i] = np.nan
                 res_w[i] = 0.0
                 jac_w[:, i] = 0.0
                 continue
-            val = _pixel(x[k, i], y[k, i], cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv, grad)
+            val = _pixel(x[k, i], y[k, i], cx, cy, ia, ib, ct, st, l_in, l_out, i_s, gu, gv, hu, hv, grad)
             value[k, i] = val
             res_w[i] = val - z[k, i]
             jac_w[:, i] = grad
@@ -245,9 +267,10 @@ def _band_pixels(image: np.ndarray, centres, axes, theta, sigma, p: EdgeFitParam
     return xs, ys, image[ys.astype(int), xs.astype(int)].astype(float), ds, mask
 
 
-def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, mask: np.ndarray,
-                         p: EdgeFitParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Batched LM over the dots' parameters q (K, 10) on their band pixels; returns (q, pixel weights
+def _levenberg_marquardt(q: np.ndarray, h: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                         mask: np.ndarray, p: EdgeFitParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Batched LM over the dots' parameters q (K, 10), blur gradients h (K, 2) held, on their band
+    pixels; returns (q, pixel weights
     (K, M), cost (K,)). Each iteration evaluates the model and the normal equations once, at the
     trial point, and keeps them when the step is accepted. The outlier pass removes the dropped
     pixels' terms from the normal equations (evaluating those pixels only). From then on a dot
@@ -256,7 +279,7 @@ def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndar
     returned cost is the one before that last step."""
     w = mask.astype(float)
     lam = np.full(len(q), 1e-3)
-    value, jtj, jtr, cost = _normal_equations(q, x, y, z, w)
+    value, jtj, jtr, cost = _normal_equations(q, x, y, z, w, h)
     active = np.ones(len(q), bool)
     eye = np.eye(N_PARAMS)
     for it in range(p.iterations):
@@ -264,7 +287,7 @@ def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndar
             r = value - z  # every band pixel was evaluated so far
             scale = 1.4826 * masked_median(np.abs(r), mask)
             kept_px = mask & (np.abs(r) <= p.outlier_sigmas * np.maximum(scale, 0.5)[:, None])
-            _, jtj_out, jtr_out, cost_out = _normal_equations(q, x, y, z, (mask & ~kept_px).astype(float))
+            _, jtj_out, jtr_out, cost_out = _normal_equations(q, x, y, z, (mask & ~kept_px).astype(float), h)
             jtj, jtr, cost = jtj - jtj_out, jtr - jtr_out, cost - cost_out
             w = kept_px.astype(float)
         a = np.flatnonzero(active)
@@ -283,15 +306,52 @@ def _levenberg_marquardt(q: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndar
             if a.size == 0:
                 break
         # while every dot is active, pass the arrays themselves, not gathered copies
-        x_a, y_a, z_a, w_a = (x, y, z, w) if a.size == len(q) else (x[a], y[a], z[a], w[a])
+        x_a, y_a, z_a, w_a, h_a = (x, y, z, w, h) if a.size == len(q) else (x[a], y[a], z[a], w[a], h[a])
         q_new = q[a] + step
-        value_new, jtj_new, jtr_new, cost_new = _normal_equations(q_new, x_a, y_a, z_a, w_a)
+        value_new, jtj_new, jtr_new, cost_new = _normal_equations(q_new, x_a, y_a, z_a, w_a, h_a)
         better = np.isfinite(cost_new) & (cost_new < cost[a])
         kept = a[better]
         q[kept], value[kept], jtj[kept], jtr[kept] = q_new[better], value_new[better], jtj_new[better], jtr_new[better]
         cost[kept] = cost_new[better]
         lam[a] = np.where(better, lam[a] / 10.0, lam[a] * 10.0)
     return q, w, cost
+
+
+def blur_gradients(centres: np.ndarray, sigma: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """∇s (len(at), 2) px/px at the dots ``at`` of the image's smooth blur field.
+
+    centres (K, 2) px and sigma (K,) px: every dot of the image and its edge blur. σ² is fitted
+    over the image as a quadratic in position (a plane with fewer than 9 dots; no gradient with
+    fewer than 3), once more without dots beyond 4 robust σ; ∇s = ∇σ²/(2σ) at each dot. On a
+    plate tilted out of the focal plane the defocus blur grows with the distance from it, so the
+    blur changes across each dot (s ∝ |Z − Z_focus|: a 20° tilt 15 mm off focus at 300 mm gives
+    ∇s ≈ 1e-3 px/px for camera 1 at full size)."""
+    ok = np.isfinite(centres).all(axis=1) & np.isfinite(sigma)
+    out = np.zeros((len(at), 2))
+    n = int(ok.sum())
+    if n < 3:
+        return out
+    origin = centres[ok].mean(axis=0)
+    scale = max(float(np.ptp(centres[ok], axis=0).max()), 1.0)
+
+    def basis(uv):
+        x, y = ((uv - origin) / scale).T
+        cols = [np.ones_like(x), x, y] + ([x * x, x * y, y * y] if n >= 9 else [])
+        return np.stack(cols, axis=1)
+
+    a, s2 = basis(centres[ok]), sigma[ok] ** 2
+    keep = np.ones(n, bool)
+    for _ in range(2):
+        coef = np.linalg.lstsq(a[keep], s2[keep], rcond=None)[0]
+        r = s2 - a @ coef
+        keep = np.abs(r) <= 4.0 * (1.4826 * np.median(np.abs(r[keep])) + 1e-12)
+    coef = np.pad(coef, (0, 6 - len(coef)))
+    x, y = ((centres[at] - origin) / scale).T
+    grad_s2 = np.stack([coef[1] + 2 * coef[3] * x + coef[4] * y,
+                        coef[2] + coef[4] * x + 2 * coef[5] * y], axis=1) / scale
+    s_here = np.sqrt(np.clip(basis(centres[at]) @ coef[:a.shape[1]], 0.01, None))
+    out[:] = np.nan_to_num(grad_s2 / (2.0 * s_here[:, None]))
+    return out
 
 
 def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
@@ -317,8 +377,9 @@ def fit_dot_edges(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, thet
     l_in = masked_median(z, mask & (d0 < -far))
     l_out = masked_median(z, mask & (d0 > far))
     q = np.column_stack([centres[idx], axes[idx], theta[idx], l_in, l_out, s0, np.zeros((idx.size, 2))])
+    h = blur_gradients(centres, sigma, idx) if p.blur_gradient else np.zeros((idx.size, 2))
     with one_blas_thread():
-        q, w, cost = over_dots(_levenberg_marquardt, idx.size, q, x, y, z, mask, p=p)
+        q, w, cost = over_dots(_levenberg_marquardt, idx.size, q, h, x, y, z, mask, p=p)
     a_fit, b_fit = np.abs(q[:, 2]), np.abs(q[:, 3])
     s_fit = np.abs(q[:, 7])
     shift = np.linalg.norm(q[:, :2] - centres[idx], axis=1)

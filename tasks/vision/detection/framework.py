@@ -48,7 +48,7 @@ from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.grid import order_grid
 from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder
 from tasks.vision.detection.partial_view import too_few_dots
-from tasks.vision.detection.perspective import correct_bias, correct_bias_local, fit_homography, project
+from tasks.vision.detection.perspective import corrected_centres, fit_homography
 from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
 from tasks.vision.detection.result import GridDetection
 from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
@@ -486,10 +486,8 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     t5 = time.perf_counter()
     xy = plate.dot_centres_mm()[found, :2]
     if correct_perspective:
-        centres, hom = correct_bias(fits.centres, xy, plate.dot_diameter_mm / 2, p.bias_iterations)
-        misfit = np.sqrt(np.mean(np.sum((project(hom, xy) - centres) ** 2, axis=1)))
-        if misfit > p.distorted_misfit_px:  # lens distortion: one homography per neighbourhood
-            centres = correct_bias_local(fits.centres, xy, plate.dot_diameter_mm / 2, rc[found], p.bias_iterations)
+        centres, hom = corrected_centres(fits.centres, xy, plate.dot_diameter_mm / 2, rc[found], p.bias_iterations,
+                                         p.distorted_misfit_px)
     else:
         centres, hom = fits.centres.copy(), fit_homography(xy, fits.centres)
     tm["perspective"] = time.perf_counter() - t5

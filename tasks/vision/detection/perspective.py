@@ -55,6 +55,22 @@ def correct_bias(ellipse_centres_px: np.ndarray, plate_xy_mm: np.ndarray, radius
     return corrected, h
 
 
+def corrected_centres(ellipse_centres_px: np.ndarray, plate_xy_mm: np.ndarray, radius_mm: float,
+                      row_col: np.ndarray, iterations: int, distorted_misfit_px: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The detector's perspective correction: (projected circle centres (N, 2) px, plate homography).
+
+    :func:`correct_bias` with one homography; when it leaves an RMS misfit above
+    ``distorted_misfit_px`` (lens distortion), :func:`correct_bias_local` with one per neighbourhood
+    (the homography returned is then still the single one). ellipse_centres_px (N, 2) px,
+    plate_xy_mm (N, 2) mm, row_col (N, 2) plate row and column of each dot."""
+    centres, hom = correct_bias(ellipse_centres_px, plate_xy_mm, radius_mm, iterations)
+    misfit = np.sqrt(np.mean(np.sum((project(hom, plate_xy_mm) - centres) ** 2, axis=1)))
+    if misfit > distorted_misfit_px:
+        centres = correct_bias_local(ellipse_centres_px, plate_xy_mm, radius_mm, row_col, iterations)
+    return centres, hom
+
+
 def local_homographies(plate_xy_mm: np.ndarray, image_uv_px: np.ndarray, member: np.ndarray) -> np.ndarray:
     """(N, 3, 3) homographies plate mm → image px, the k-th fitted to the points ``member[k]`` selects.
 

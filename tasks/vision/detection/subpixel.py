@@ -29,7 +29,7 @@ rad from +u towards +v.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -43,7 +43,7 @@ from tasks.vision.detection.conics import (
     ransac_ellipse,
     ransac_samples,
 )
-from tasks.vision.detection.edge_fit import fit_dot_edges
+from tasks.vision.detection.edge_fit import EdgeFitParams, fit_dot_edges
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.stats import masked_median
@@ -77,6 +77,7 @@ class SubpixelParams:
     blur_curvature_correction: bool = True
     flat_field: bool = True  # divide the profiles by the image's gain field (see module docstring)
     pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.vision.detection.edge_fit)
+    edge_fit: EdgeFitParams = field(default_factory=EdgeFitParams)
 
 
 @dataclass
@@ -542,7 +543,7 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     if p.pixel_edge_fit and ok.any():
         t0 = clock()
         sel = np.flatnonzero(ok)
-        edges = fit_dot_edges(image, cen[sel], axs[sel], ths[sel], s_med[sel])
+        edges = fit_dot_edges(image, cen[sel], axs[sel], ths[sel], s_med[sel], p.edge_fit)
         use = sel[edges.ok]
         cen[use], axs[use], ths[use] = edges.centres[edges.ok], edges.axes[edges.ok], edges.theta[edges.ok]
         t_fit += clock() - t0

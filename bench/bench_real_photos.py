@@ -93,7 +93,10 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--only", default="", help="only photographs whose name contains this")
     ap.add_argument("--debug", type=Path, default=None, help="write rrht's debug drawings here")
+    ap.add_argument("--detector", action="append", choices=DETECTORS,
+                    help="only these detectors (repeatable; default all)")
     args = ap.parse_args()
+    detectors = tuple(d for d in DETECTORS if not args.detector or d in args.detector)
     rows, warm = [], False
     for jpath in sorted(p for p in args.folder.glob("*.json") if args.only in p.stem):
         t = json.loads(jpath.read_text())
@@ -103,12 +106,12 @@ def main() -> None:
         others = {"centroid": np.array(t["centroid_px"]), "sloped": np.array(t["rim_sloped_px"]),
                   "image rim": np.array(t.get("rim_in_image_px", t["truth_px"]))}
         if not warm:
-            for d in DETECTORS:
+            for d in detectors:
                 run(d, image, plate)
             warm = True
-        out, times = {}, {d: [] for d in DETECTORS}
+        out, times = {}, {d: [] for d in detectors}
         for _ in range(args.repeat):
-            for d in DETECTORS:
+            for d in detectors:
                 t0 = time.perf_counter()
                 out[d] = run(d, image, plate)
                 times[d].append(time.perf_counter() - t0)
@@ -118,7 +121,7 @@ def main() -> None:
         row = {"name": jpath.stem, "regime": regime(jpath.stem),
                "spread": {k: float(np.median(np.linalg.norm(truth - v, axis=1))) for k, v in others.items()}}
         line = f"{jpath.stem:44s} d {dot_px:5.1f}px truth-centroid {row['spread']['centroid']:.2f}"
-        for d in DETECTORS:
+        for d in detectors:
             verdict, e = score(d, out[d], plate, truth, dot_px)
             e_other = {k: score(d, out[d], plate, v, dot_px)[1] for k, v in others.items()}
             row[d] = (verdict, e, e_other, 1e3 * statistics.median(times[d]))
@@ -134,7 +137,7 @@ def main() -> None:
           f"with sloped levels {spread['sloped']:.3f} px")
     print(f"{'detector':15s} {'found':>6s} {'refused':>8s} {'wrong':>6s} {'median err px':>14s} "
           f"{'vs centroid':>12s} {'vs sloped rim':>14s} {'worst dot px':>13s} {'median ms':>10s}")
-    for d in DETECTORS:
+    for d in detectors:
         n = {v: sum(r[d][0] == v for r in rows) for v in ("found", "refused", "wrong")}
         errs = [r[d][1] for r in rows if r[d][1] is not None]
 
@@ -149,7 +152,7 @@ def main() -> None:
           "truth of the image as delivered, 'image rim')")
     regimes = sorted({r["regime"] for r in rows})
     print(f"{'detector':15s} " + " ".join(f"{g:>22s}" for g in regimes))
-    for d in DETECTORS:
+    for d in detectors:
         cells = []
         for g in regimes:
             rg = [r for r in rows if r["regime"] == g]
@@ -158,7 +161,7 @@ def main() -> None:
             err = statistics.median(float(np.median(e)) for e in es) if es else float("nan")
             cells.append(f"{len(es)}/{len(rg)}{f' ({n_wrong} wrong)' if n_wrong else ''} {err:.3f}")
         print(f"{d:15s} " + " ".join(f"{c:>22s}" for c in cells))
-    for ref in ("cv2+clustering", "cv2"):
+    for ref in (d for d in ("cv2+clustering", "cv2") if d in detectors and "rrht" in detectors):
         both = [r for r in rows if r["rrht"][1] is not None and r[ref][1] is not None]
         if both:
             sp = statistics.mean(r[ref][3] for r in both) / statistics.mean(r["rrht"][3] for r in both)

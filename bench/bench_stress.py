@@ -202,6 +202,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seeds", type=int, default=1, help="renders per case (seeds case.seed, +100, +200 …)")
     ap.add_argument("--case", action="append", help="only these cases (repeatable)")
+    ap.add_argument("--detector", action="append", choices=DETECTORS,
+                    help="only these detectors on the stress cases (repeatable; default all)")
     ap.add_argument("--random", type=int, default=0, help="draw this many random cases instead")
     ap.add_argument("--random-seed", type=int, default=0)
     ap.add_argument("--fisheye", action="store_true", help="random cases through the fisheye lens "
@@ -227,6 +229,7 @@ def main() -> None:
         random_run(args.random, args.random_seed, args.fisheye, args.garden)
         return
     cases = [c for c in STRESS_CASES if not args.case or c.name in args.case]
+    detectors = tuple(d for d in DETECTORS if not args.detector or d in args.detector)
     print(f"cv2 {cv2.__version__}, cv2 threads {cv2.getNumThreads()}; {len(cases)} cases × {args.seeds} seeds, "
           f"{args.repeat} repeats")
     rows = []
@@ -237,21 +240,21 @@ def main() -> None:
             image, truth = render_stress_case(c)
             plate = replace(c.plate, dark_dots=c.dark_dots)
             if not warm:  # lazy initialisation and compiled code outside the timings
-                for d in DETECTORS:
+                for d in detectors:
                     run(d, image, plate)
                 warm = True
-            times = {d: [] for d in DETECTORS}
-            cpu = {d: [] for d in DETECTORS}
+            times = {d: [] for d in detectors}
+            cpu = {d: [] for d in detectors}
             out = {}
             for _ in range(args.repeat):
-                for d in DETECTORS:
+                for d in detectors:
                     t0, c0 = time.perf_counter(), time.process_time()
                     out[d] = run(d, image, plate)
                     times[d].append(time.perf_counter() - t0)
                     cpu[d].append(time.process_time() - c0)
             row = {"case": c.name, "seed": c.seed, "size": f"{c.width}x{c.height}", "dot_px": c.dot_px}
             line = f"{c.name:17s} s{c.seed:<4d}"
-            for d in DETECTORS:
+            for d in detectors:
                 err = match_errors(out[d], truth, c.dot_px)
                 row[d + "_ms"] = 1e3 * statistics.median(times[d])
                 row[d + "_cpu_ms"] = 1e3 * statistics.median(cpu[d])
@@ -262,13 +265,13 @@ def main() -> None:
             print(line, flush=True)
     print()
     print(f"{'detector':15s} {'found':>7s} {'median err px':>14s} {'worst err px':>13s} {'median ms':>10s}")
-    for d in DETECTORS:
+    for d in detectors:
         errs = [r[d + "_err"] for r in rows if r[d + "_err"] is not None]
         med = statistics.median([float(np.median(e)) for e in errs]) if errs else float("nan")
         worst = max(float(e.max()) for e in errs) if errs else float("nan")
         print(f"{d:15s} {len(errs):3d}/{len(rows):<3d} {med:14.3f} {worst:13.3f} "
               f"{statistics.median(r[d + '_ms'] for r in rows):10.1f}")
-    for ref in ("cv2", "cv2+clustering", "blob"):
+    for ref in (d for d in ("cv2", "cv2+clustering", "blob") if d in detectors):
         both = [r for r in rows if r["rrht_err"] is not None and r[ref + "_err"] is not None]
         if both:
             sp = statistics.mean(r[ref + "_ms"] for r in both) / statistics.mean(r["rrht_ms"] for r in both)

@@ -325,13 +325,11 @@ def join_bands(attempts: list[CoarseAttempt], plate: DotPlate, tm: dict, *, expe
         merged, added = merge_candidates(finer.circles, moved)
         if not added.any():
             continue
-        t0 = time.perf_counter()
-        levels = np.concatenate([finer.levels, coarser.levels[added]])
-        order = order_grid(merged.centres, plate, sizes=2 * merged.axes[:, 0], image_shape=finer.shape,
-                           expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=levels)
-        tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t0
-        if order.ok:
-            return CoarseAttempt(finer.factor, merged, order, "", levels, finer.shape, finer.image)
+        joined = ordered_attempt(finer.image, merged, np.concatenate([finer.levels, coarser.levels[added]]), plate,
+                                 finer.factor, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
+                                 expected_centres_px=None)
+        if joined.ok:
+            return joined
     return None
 
 
@@ -359,14 +357,10 @@ def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams,
     merged, added = merge_candidates(attempt.circles, extra)
     if not added.any():
         return None
-    all_levels = np.concatenate([attempt.levels, levels[added]])
-    t1 = time.perf_counter()
-    again = order_grid(merged.centres, plate, sizes=2 * merged.axes[:, 0], image_shape=attempt.shape,
-                       expected_rotation_deg=expected_rotation_deg, mirrored=mirrored, levels=all_levels)
-    tm["ordering"] = tm.get("ordering", 0.0) + time.perf_counter() - t1
-    if not again.ok:
-        return None
-    return CoarseAttempt(attempt.factor, merged, again, "", all_levels, attempt.shape, attempt.image)
+    again = ordered_attempt(attempt.image, merged, np.concatenate([attempt.levels, levels[added]]), plate,
+                            attempt.factor, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
+                            expected_centres_px=None)
+    return again if again.ok else None
 
 
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False

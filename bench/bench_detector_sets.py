@@ -27,6 +27,7 @@ error (px); RRHT's time median / worst (ms). Per-image lines go to stdout, the t
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
@@ -51,6 +52,9 @@ from tasks.vision.detection import detect_grid
 DETECTORS = ("rrht", "rrht ellipse", "blob", "hough", "cv2", "cv2+clustering")
 HEADERS = {"rrht": "rrht", "rrht ellipse": "rrht ellipse centres", "blob": "blob (our findCirclesGrid)",
            "hough": "hough", "cv2": "cv2.findCirclesGrid", "cv2+clustering": "findCirclesGrid + clustering"}
+
+OLDER_TRUTH = ("written before bench/real_photo_truth.py recorded `rim_in_image_px`: errors against `truth_px` "
+               "(through the lens, the rim centre mapped through it, not the hand fit of the distorted dot)")
 
 GARDEN_COUNTS = {"phone": (10, 2), "fisheye": (40, 10), "distant": (40, 10)}
 """Draws per garden regime and seed: (full run, ``--quick``)."""
@@ -78,6 +82,7 @@ class ImageSet:
     images: Callable[[], Iterable[Image]]
     hand_fit: bool = False
     missing: str = ""
+    note: str = ""
 
 
 def stress_set(seeds: int) -> Iterator[Image]:
@@ -110,8 +115,9 @@ def image_sets(photo_dirs: list[Path], quick: bool) -> list[ImageSet]:
                                  lambda n=n, seed=seed, r=regime_name: random_set(n, seed, garden=r)))
     for folder in photo_dirs:
         missing = "" if folder.is_dir() and any(folder.glob("*.json")) else f"{folder} absent or empty: skipped"
+        older = not missing and any("rim_in_image_px" not in json.loads(j.read_text()) for j in folder.glob("*.json"))
         sets.append(ImageSet(f"photos-{folder.name}", f"photographs {folder}", lambda f=folder: photo_set(f),
-                             hand_fit=True, missing=missing))
+                             hand_fit=True, missing=missing, note=OLDER_TRUTH if older else ""))
     return sets
 
 
@@ -157,8 +163,9 @@ def table(results: list[tuple[ImageSet, int, dict[str, str] | None, list[float]]
             continue
         row = [cells.get(d, "–") if (d != "rrht ellipse" or s.hand_fit) else "–" for d in DETECTORS]
         t = f"{1e3 * statistics.median(times):.0f} / {1e3 * max(times):.0f}" if times else "–"
-        lines.append(f"| {s.name} ({n}) | " + " | ".join(row) + f" | {t} |")
-    return "\n".join(lines)
+        lines.append(f"| {s.name} ({n}){' †' if s.note else ''} | " + " | ".join(row) + f" | {t} |")
+    notes = sorted({s.note for s, *_ in results if s.note})
+    return "\n".join(lines + [""] + [f"† {note}" for note in notes] if notes else lines)
 
 
 def run_sets(sets: list[ImageSet]) -> list[tuple[ImageSet, int, dict[str, str] | None, list[float]]]:
@@ -188,18 +195,22 @@ def run_sets(sets: list[ImageSet]) -> list[tuple[ImageSet, int, dict[str, str] |
         if s.hand_fit and len(set(regimes)) > 1:
             for g in sorted(set(regimes)):
                 idx = [i for i, r in enumerate(regimes) if r == g]
-                sub = ImageSet(f"{s.name}: {g}", s.what, s.images, hand_fit=True)
+                sub = ImageSet(f"{s.name}: {g}", s.what, s.images, hand_fit=True, note=s.note)
                 results.append((sub, len(idx), summarise([rows[i] for i in idx], detectors), [times[i] for i in idx]))
     return results
 
 
-def provenance(started: float, load_start: tuple[float, ...], argv: list[str]) -> str:
-    """One line: date, commit, OpenCV, load average at the start and end, wall time of the run, command."""
+def git_commit() -> str:
+    """The checkout's commit (short), or "unknown"."""
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=True).stdout.strip()
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+        return "unknown"
+
+
+def provenance(started: float, load_start: tuple[float, ...], commit: str, argv: list[str]) -> str:
+    """One line: date, commit at the start, OpenCV, load average at the start and end, wall time, command."""
     return (f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, code {commit}, OpenCV {cv2.__version__} "
             f"({cv2.getNumThreads()} threads), load average {load_start[0]:.1f} → {os.getloadavg()[0]:.1f} on "
             f"{os.cpu_count()} CPUs, run {time.perf_counter() - started:.0f} s: "
@@ -220,11 +231,11 @@ def main() -> None:
     if args.list:
         print("\n".join(f"{s.name:24s} {s.what}" + (f" ({s.missing})" if s.missing else "") for s in sets))
         return
-    started, load_start = time.perf_counter(), os.getloadavg()
+    started, load_start, commit = time.perf_counter(), os.getloadavg(), git_commit()
     results = run_sets(sets)
     text = (table(results) + "\n\nfound / refused / wrong, median over the found images of the per-image median "
             "centre error (px; photographs: against the rim ellipse of the image as delivered)\n"
-            + provenance(started, load_start, sys.argv[1:]) + "\n")
+            + provenance(started, load_start, commit, sys.argv[1:]) + "\n")
     print("\n" + text)
     if args.out:
         args.out.write_text(text)

@@ -43,11 +43,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_stress import DETECTORS as STRESS_DETECTORS
-from bench_stress import match_errors
 from bench_stress import run as run_stress
+from bench_stress import score
 
 from tasks.machine.plate import DotPlate
-from tasks.simulation.detector_stress import errors_up_to_symmetry
 from tasks.vision.detection import detect_grid
 from tasks.vision.detection.debug_image import draw_detection
 
@@ -75,16 +74,19 @@ def regime(name: str) -> str:
     return "other"
 
 
-def score(detector: str, centres: np.ndarray | None, plate: DotPlate, truth: np.ndarray,
-          dot_px: float) -> tuple[str, np.ndarray | None]:
-    """("found" | "refused" | "wrong", per-dot errors px or None) of one detector's answer."""
-    if centres is None:
-        return "refused", None
-    if detector.startswith("rrht"):
-        e = errors_up_to_symmetry(plate, centres, truth)
-        return ("found", e) if e.max() < 0.25 * dot_px else ("wrong", None)
-    e = match_errors(centres, truth, dot_px)
-    return ("found", e) if e is not None else ("wrong", None)
+def photographs(folder: Path, only: str = ""):
+    """Read ``folder``'s photographs (bench/real_photo_truth.py's output) whose name contains ``only``, in
+    name order. Yields (json path, grey image, plate, truth px, dot size px, the other estimators: {"centroid",
+    "sloped", "image rim"} px; "image rim" is the rim ellipse of the image as delivered, as a hand fit on it)."""
+    for jpath in sorted(p for p in folder.glob("*.json") if only in p.stem):
+        t = json.loads(jpath.read_text())
+        image = cv2.imread(str(jpath.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise FileNotFoundError(f"{jpath.with_suffix('.png')}: missing or unreadable (truth {jpath})")
+        plate = DotPlate(t["rows"], t["cols"], t["pitch_over_diameter"], 1.0)
+        others = {"centroid": np.array(t["centroid_px"]), "sloped": np.array(t["rim_sloped_px"]),
+                  "image rim": np.array(t.get("rim_in_image_px", t["truth_px"]))}
+        yield jpath, image, plate, np.array(t["truth_px"]), t["dot_diameter_px"], others
 
 
 def main() -> None:
@@ -98,13 +100,7 @@ def main() -> None:
     args = ap.parse_args()
     detectors = tuple(d for d in DETECTORS if not args.detector or d in args.detector)
     rows, warm = [], False
-    for jpath in sorted(p for p in args.folder.glob("*.json") if args.only in p.stem):
-        t = json.loads(jpath.read_text())
-        image = cv2.imread(str(jpath.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
-        plate = DotPlate(t["rows"], t["cols"], t["pitch_over_diameter"], 1.0)
-        truth, dot_px = np.array(t["truth_px"]), t["dot_diameter_px"]
-        others = {"centroid": np.array(t["centroid_px"]), "sloped": np.array(t["rim_sloped_px"]),
-                  "image rim": np.array(t.get("rim_in_image_px", t["truth_px"]))}
+    for jpath, image, plate, truth, dot_px, others in photographs(args.folder, args.only):
         if not warm:
             for d in detectors:
                 run(d, image, plate)

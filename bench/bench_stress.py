@@ -91,14 +91,36 @@ def match_errors(found: np.ndarray | None, truth: np.ndarray, dot_px: float) -> 
     return d
 
 
-def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = None) -> None:
-    """Random stress cases (``garden``: garden photographs of that regime, garden_stress.random_garden_case):
-    found / refused / wrong for RRHT and cv2.findCirclesGrid with and without clustering, same images."""
+def score(detector: str, centres: np.ndarray | None, plate: DotPlate, truth: np.ndarray,
+          dot_px: float) -> tuple[str, np.ndarray | None]:
+    """("found" | "refused" | "wrong", per-dot errors px or None) of one detector's answer. RRHT
+    (any name starting "rrht"): found when every dot lies within a quarter of the dot size of the true
+    centre its label names, up to the grid's symmetry; the others order the grid their own way: found
+    when one-to-one within a quarter of the dot size (:func:`match_errors`)."""
+    if centres is None:
+        return "refused", None
+    if detector.startswith("rrht"):
+        e = errors_up_to_symmetry(plate, centres, truth)
+        return ("found", e) if e.max() < 0.25 * dot_px else ("wrong", None)
+    e = match_errors(centres, truth, dot_px)
+    return ("found", e) if e is not None else ("wrong", None)
+
+
+def stress_images(cases, seeds: int):
+    """Render each named stress case with ``seeds`` seeds (case.seed, +100, +200 …). Yields (case, image,
+    truth px, plate)."""
+    for case in cases:
+        for s in range(seeds):
+            c = replace(case, seed=case.seed + 100 * s)
+            image, truth = render_stress_case(c)
+            yield c, image, truth, replace(c.plate, dark_dots=c.dark_dots)
+
+
+def random_images(n: int, seed: int, fisheye: bool = False, garden: str | None = None):
+    """Render ``n`` random draws (seed ``seed``): :func:`random_case`, :func:`random_fisheye_case` with
+    ``fisheye``, or garden photographs of the regime ``garden``. Yields (geometry, image, truth px, plate,
+    description) for the draws whose dots are all wholly in view; the others are skipped."""
     rng = np.random.default_rng(seed)
-    detectors = ("rrht", "cv2+clustering", "cv2")
-    counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in detectors}
-    errs: dict[str, list[float]] = {d: [] for d in counts}
-    n_cases = 0
     for i in range(n):
         if garden:
             case = random_garden_case(rng, f"{garden}-{i}", garden)
@@ -113,27 +135,29 @@ def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = No
                 continue
             image, truth = render_stress_case(geometry)
             what, jpeg = f"blur {geometry.defocus_px:.0f}", geometry.jpeg
+        what = (f"{geometry.width}x{geometry.height} dot {geometry.dot_px:5.1f}px tilt {geometry.tilt_deg:4.1f} "
+                f"k1 {geometry.k1:+.2f} {what} jpeg {jpeg:2d} {'dark' if geometry.dark_dots else 'light'}")
+        yield geometry, image, truth, replace(ISSUE_PLATE, dark_dots=geometry.dark_dots), what
+
+
+def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = None) -> None:
+    """Random stress cases (``garden``: garden photographs of that regime, garden_stress.random_garden_case):
+    found / refused / wrong for RRHT and cv2.findCirclesGrid with and without clustering, same images."""
+    detectors = ("rrht", "cv2+clustering", "cv2")
+    counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in detectors}
+    errs: dict[str, list[float]] = {d: [] for d in counts}
+    n_cases = 0
+    for geometry, image, truth, plate, what in random_images(n, seed, fisheye, garden):
         n_cases += 1
-        plate = replace(ISSUE_PLATE, dark_dots=geometry.dark_dots)
         verdicts = []
         for d in counts:
             det = detect_grid(image, plate, "rrht") if d == "rrht" else None
             c = run(d, image, plate) if det is None else (det.centres if det.ok else None)
-            if c is None:
-                verdict = "refused" + (f" ({det.reason})" if det is not None else "")
-            elif d == "rrht":
-                e = errors_up_to_symmetry(plate, c, truth)
-                verdict = "found" if e.max() < 0.25 * geometry.dot_px else "wrong"
-                errs[d] += [float(np.median(e))] if verdict == "found" else []
-            else:
-                e = match_errors(c, truth, geometry.dot_px)
-                verdict = "found" if e is not None else "wrong"
-                errs[d] += [float(np.median(e))] if e is not None else []
-            counts[d][verdict.split()[0]] += 1
-            verdicts.append(f"{d} {verdict}")
-        print(f"{geometry.name:11s} {geometry.width}x{geometry.height} dot {geometry.dot_px:5.1f}px "
-              f"tilt {geometry.tilt_deg:4.1f} k1 {geometry.k1:+.2f} {what} jpeg {jpeg:2d} "
-              f"{'dark' if geometry.dark_dots else 'light'}: " + ", ".join(verdicts), flush=True)
+            verdict, e = score(d, c, plate, truth, geometry.dot_px)
+            errs[d] += [float(np.median(e))] if e is not None else []
+            counts[d][verdict] += 1
+            verdicts.append(f"{d} {verdict}" + (f" ({det.reason})" if det is not None and c is None else ""))
+        print(f"{geometry.name:11s} {what}: " + ", ".join(verdicts), flush=True)
     print(f"\n{n_cases} random cases in view (of {n} drawn, seed {seed})")
     for d, c in counts.items():
         med = statistics.median(errs[d]) if errs[d] else float("nan")
@@ -234,35 +258,31 @@ def main() -> None:
           f"{args.repeat} repeats")
     rows = []
     warm = False
-    for case in cases:
-        for s in range(args.seeds):
-            c = replace(case, seed=case.seed + 100 * s)
-            image, truth = render_stress_case(c)
-            plate = replace(c.plate, dark_dots=c.dark_dots)
-            if not warm:  # lazy initialisation and compiled code outside the timings
-                for d in detectors:
-                    run(d, image, plate)
-                warm = True
-            times = {d: [] for d in detectors}
-            cpu = {d: [] for d in detectors}
-            out = {}
-            for _ in range(args.repeat):
-                for d in detectors:
-                    t0, c0 = time.perf_counter(), time.process_time()
-                    out[d] = run(d, image, plate)
-                    times[d].append(time.perf_counter() - t0)
-                    cpu[d].append(time.process_time() - c0)
-            row = {"case": c.name, "seed": c.seed, "size": f"{c.width}x{c.height}", "dot_px": c.dot_px}
-            line = f"{c.name:17s} s{c.seed:<4d}"
+    for c, image, truth, plate in stress_images(cases, args.seeds):
+        if not warm:  # lazy initialisation and compiled code outside the timings
             for d in detectors:
-                err = match_errors(out[d], truth, c.dot_px)
-                row[d + "_ms"] = 1e3 * statistics.median(times[d])
-                row[d + "_cpu_ms"] = 1e3 * statistics.median(cpu[d])
-                row[d + "_err"] = err
-                line += f" | {d} {'ok ' if err is not None else '-- '}{row[d + '_ms']:6.0f} ms"
-                line += f" {np.median(err):.3f}px" if err is not None else "        "
-            rows.append(row)
-            print(line, flush=True)
+                run(d, image, plate)
+            warm = True
+        times = {d: [] for d in detectors}
+        cpu = {d: [] for d in detectors}
+        out = {}
+        for _ in range(args.repeat):
+            for d in detectors:
+                t0, c0 = time.perf_counter(), time.process_time()
+                out[d] = run(d, image, plate)
+                times[d].append(time.perf_counter() - t0)
+                cpu[d].append(time.process_time() - c0)
+        row = {"case": c.name, "seed": c.seed, "size": f"{c.width}x{c.height}", "dot_px": c.dot_px}
+        line = f"{c.name:17s} s{c.seed:<4d}"
+        for d in detectors:
+            err = match_errors(out[d], truth, c.dot_px)
+            row[d + "_ms"] = 1e3 * statistics.median(times[d])
+            row[d + "_cpu_ms"] = 1e3 * statistics.median(cpu[d])
+            row[d + "_err"] = err
+            line += f" | {d} {'ok ' if err is not None else '-- '}{row[d + '_ms']:6.0f} ms"
+            line += f" {np.median(err):.3f}px" if err is not None else "        "
+        rows.append(row)
+        print(line, flush=True)
     print()
     print(f"{'detector':15s} {'found':>7s} {'median err px':>14s} {'worst err px':>13s} {'median ms':>10s}")
     for d in detectors:

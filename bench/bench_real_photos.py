@@ -1,12 +1,14 @@
 """Benchmark: the detectors on real photographs of a 4 × 3 dot grid, against an image-based truth.
 
     .venv/bin/python bench/real_photo_truth.py --out DIR NAME=PHOTO...     # once: images + truth
-    .venv/bin/python bench/bench_real_photos.py DIR [--repeat 3] [--debug OUT]
+    .venv/bin/python bench/bench_real_photos.py DIR [--repeat 3] [--debug OUT] [--invert]
 
 DIR holds ``NAME.png`` (a photograph of a large dot grid cut down to a rows × cols block, the
 block's own pixels) and ``NAME.json`` (its truth), written by ``bench/real_photo_truth.py``
 (see there: the truth is the centre of an ellipse through each dot's visible rim, as fitted by
 hand; a second estimator, the intensity centroid, and a map of the surrounding dots judge it).
+With ``--invert`` every image is inverted (255 − grey) and the plate's dots are light: the same
+dots in the other polarity.
 
 The detectors of bench/bench_stress.py run in the same process on the same images, interleaved
 over the repeats (median wall time kept). Scoring:
@@ -74,16 +76,19 @@ def regime(name: str) -> str:
     return "other"
 
 
-def photographs(folder: Path, only: str = ""):
+def photographs(folder: Path, only: str = "", invert: bool = False):
     """Read ``folder``'s photographs (bench/real_photo_truth.py's output) whose name contains ``only``, in
-    name order. Yields (json path, grey image, plate, truth px, dot size px, the other estimators: {"centroid",
+    name order; ``invert``: every image inverted (255 − grey) and the plate's dots light. Yields (json path,
+    grey image, plate, truth px, dot size px, the other estimators: {"centroid",
     "sloped", "image rim"} px; "image rim" is the rim ellipse of the image as delivered, as a hand fit on it)."""
     for jpath in sorted(p for p in folder.glob("*.json") if only in p.stem):
         t = json.loads(jpath.read_text())
         image = cv2.imread(str(jpath.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise FileNotFoundError(f"{jpath.with_suffix('.png')}: missing or unreadable (truth {jpath})")
-        plate = DotPlate(t["rows"], t["cols"], t["pitch_over_diameter"], 1.0)
+        plate = DotPlate(t["rows"], t["cols"], t["pitch_over_diameter"], 1.0, dark_dots=not invert)
+        if invert:
+            image = 255 - image
         others = {"centroid": np.array(t["centroid_px"]), "sloped": np.array(t["rim_sloped_px"]),
                   "image rim": np.array(t.get("rim_in_image_px", t["truth_px"]))}
         yield jpath, image, plate, np.array(t["truth_px"]), t["dot_diameter_px"], others
@@ -97,10 +102,11 @@ def main() -> None:
     ap.add_argument("--debug", type=Path, default=None, help="write rrht's debug drawings here")
     ap.add_argument("--detector", action="append", choices=DETECTORS,
                     help="only these detectors (repeatable; default all)")
+    ap.add_argument("--invert", action="store_true", help="light dots: every image inverted (255 - grey)")
     args = ap.parse_args()
     detectors = tuple(d for d in DETECTORS if not args.detector or d in args.detector)
     rows, warm = [], False
-    for jpath, image, plate, truth, dot_px, others in photographs(args.folder, args.only):
+    for jpath, image, plate, truth, dot_px, others in photographs(args.folder, args.only, invert=args.invert):
         if not warm:
             for d in detectors:
                 run(d, image, plate)

@@ -164,11 +164,13 @@ def _line_fit(t: np.ndarray, prof: np.ndarray, sel: np.ndarray, sloped: bool) ->
     return pm - slope * tm, slope
 
 
-def find_dots(grey: np.ndarray, ratio_guess: float, rows: int, cols: int, margin: int = 3):
-    """One photograph's regular dots near the rows × cols block closest to the image centre:
+def find_dots(grey: np.ndarray, ratio_guess: float, rows: int, cols: int, margin: int = 3,
+              min_dot_px: float = 6.0):
+    """One photograph's regular dots (at least ``min_dot_px`` across) near the rows × cols block
+    closest to the image centre:
     (centres (N, 2) px intensity centroids, lattice (N, 2) int, radii (N,) px, the block's indices
     (rows*cols,) into them or None, all regions (centres, axes, theta), region index of each dot)."""
-    blobs = contour_candidates(grey, True, 6.0, max(grey.shape) / 6.0)
+    blobs = contour_candidates(grey, True, min_dot_px, max(grey.shape) / 6.0)
     regions = (blobs.centres, blobs.axes, blobs.theta)
     d = 2 * np.sqrt(blobs.axes[:, 0] * blobs.axes[:, 1])
     common = np.flatnonzero(np.abs(d / np.median(d) - 1.0) < 0.4)  # the grid's dots, not its fiducials
@@ -318,6 +320,7 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=4)
     ap.add_argument("--cols", type=int, default=3)
     ap.add_argument("--ratio", type=float, default=2.5, help="pitch / diameter of the photographed plate")
+    ap.add_argument("--min-dot-px", type=float, default=6.0, help="smallest dot searched for, px")
     ap.add_argument("--variants", default="1", help="comma-separated SCALE[:WxH[:fisheye]]: the cut-down image "
                     "resized by SCALE (INTER_AREA down, INTER_CUBIC up), then cropped to W x H px around the "
                     "block, or seen through a fisheye lens (fisheye_view); e.g. 1,0.5,1:360x320,1:320x360:fisheye")
@@ -332,7 +335,7 @@ def main() -> None:
         if crop_xywh is not None:
             x, y, w, h = crop_xywh
             grey = grey[y:y + h, x:x + w]
-        found = find_dots(grey, args.ratio, args.rows, args.cols)
+        found = find_dots(grey, args.ratio, args.rows, args.cols, min_dot_px=args.min_dot_px)
         if found is None:
             print(f"{name}: no complete {args.rows}x{args.cols} block of measurable dots")
             continue

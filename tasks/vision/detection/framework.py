@@ -292,7 +292,9 @@ def with_regions(attempt: CoarseAttempt, plate: DotPlate, d_min: float, d_max: f
     if len(merged) == len(circles):
         return attempt
     retry = ordered_attempt(pre, merged, np.concatenate([levels, blob_levels[added]]), plate, factor, tm, **kw)
-    best = retry if retry.ok or retry.score >= attempt.score else attempt
+    # of two refusals the more plate-like lattice is kept (looking again and the reason work on it): a
+    # larger lattice of clutter (lettering beside the plate) can hold fewer of a window's dots
+    best = retry if retry.ok or retry.plate_likeness(plate) >= attempt.plate_likeness(plate) else attempt
     if best.ok:
         return best
     # under a strong blur the Hough circle can lock on to a ring inside a dot, of another size than
@@ -302,7 +304,7 @@ def with_regions(attempt: CoarseAttempt, plate: DotPlate, d_min: float, d_max: f
         return best
     last = ordered_attempt(pre, more, np.concatenate([levels, blob_levels[added], blob_levels[~added][also]]), plate,
                            factor, tm, **kw)
-    return last if last.ok or last.score >= best.score else best
+    return last if last.ok or last.plate_likeness(plate) >= best.plate_likeness(plate) else best
 
 
 def join_bands(attempts: list[CoarseAttempt], plate: DotPlate, tm: dict, *, expected_rotation_deg: float | None,

@@ -29,6 +29,8 @@ Frames: image px (u right, v down). Plate rows/cols as in :class:`tasks.machine.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -329,8 +331,12 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
         return order_by_prior(points, sel, g, plate, np.asarray(expected_centres, dtype=float), image_shape)
     if not windows:
         fill = best_window_fill(points[sel], g, rows, cols, image_shape)
-        return fail_order(plate, incomplete_lattice_reason(fill, shape_txt, len(sel), rows, cols), (hh, ww),
-                          (sel, g), window_dots=fill.count)
+        refusal = fail_order(plate, incomplete_lattice_reason(fill, shape_txt, len(sel), rows, cols), (hh, ww),
+                             (sel, g), window_dots=fill.count)
+        if lattice is not None:
+            return refusal
+        return order_beside(refusal, points, sel, plate, sizes=sizes, levels=levels, image_shape=image_shape,
+                            expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
     if len(windows) > 1:
         return fail_order(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
                                  f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww), (sel, g),
@@ -374,3 +380,26 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     index = np.full(need, -1)
     index[rc[:, 0] * cols + rc[:, 1]] = pidx
     return GridOrder(True, "", index, ang, ambiguous, (hh, ww), window_dots=need)
+
+
+def order_beside(refusal: GridOrder, points: np.ndarray, used: np.ndarray, plate: DotPlate, *,
+                 sizes: np.ndarray | None, levels: np.ndarray | None, **kw) -> GridOrder:
+    """The ordering of the points (N, 2) px outside the lattice ``used`` (indices) that ``refusal``
+    holds, when it finds the grid or fills more of one rows × cols window; else ``refusal``.
+
+    Growth keeps the largest lattice of its seeds: a larger lattice of clutter beside the plate (a
+    line of lettering of the dots' size) wins, and the plate's dots, left out of it, were never
+    ordered. ``kw``: :func:`order_grid`'s ``image_shape``, ``expected_rotation_deg``, ``mirrored``.
+    """
+    rest = np.setdiff1d(np.arange(len(points)), used)
+    if len(rest) < 4 or len(rest) <= refusal.window_dots:
+        return refusal
+    sub_sizes = None if sizes is None else sizes[rest]
+    lattice = build_lattice(points[rest], sub_sizes, tuple(p / plate.dot_diameter_mm for p in plate.pitch_range_mm),
+                            min_points=plate.rows * plate.cols)
+    other = order_grid(points[rest], plate, sizes=sub_sizes, levels=None if levels is None else levels[rest],
+                       lattice=lattice, **kw)
+    if not (other.ok or other.window_dots > refusal.window_dots):
+        return refusal
+    return replace(other, index=np.where(other.index >= 0, rest[np.maximum(other.index, 0)], -1),
+                   lattice_index=None if other.lattice_index is None else rest[other.lattice_index])

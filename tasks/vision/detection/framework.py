@@ -470,7 +470,9 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
                            gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
     bad = ~fits.ok | (fits.support < p.min_support)
-    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(0.5 * fits.axes[:, 1], 2.0 * factor)
+    # a dot cut by a shadow's edge may have been found as its lit part: its coarse centre need only lie inside it
+    reach = np.where(fits.shadowed, fits.axes[:, 1], 0.5 * fits.axes[:, 1])
+    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(reach, 2.0 * factor)
     bad |= moved
     if bad.any():
         k = int(np.flatnonzero(bad)[0])

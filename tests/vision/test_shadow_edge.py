@@ -38,6 +38,7 @@ def test_dots_across_a_shadow_edge_keep_their_centres(case):
         return
     err = errors_up_to_symmetry(plate, det.centres, truth)
     assert err.max() < 0.2, np.round(err, 3)
+    assert 1 <= det.shadowed.sum() <= (to_edge < 1.0).sum()  # the detection says which dots it refitted
 
 
 def test_clean_dots_are_not_refitted():
@@ -45,7 +46,7 @@ def test_clean_dots_are_not_refitted():
     of the shadow refit: none is refitted on a log scale."""
     case = ShadowEdgeCase(14.0, dark_dots=False, shadow=1.0, exposure=1.3)
     image, truth, _, _, det = _detect(case)
-    assert det.ok
+    assert det.ok and not det.shadowed.any()
     fits = refine_ellipses(image, det.ellipse_centres + 0.3, det.axes_px, np.zeros(len(truth)), False, 0.5, 1)
     assert fits.ok.all() and not fits.shadowed.any()
 

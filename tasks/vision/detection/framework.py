@@ -497,6 +497,6 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         ok=True, reason="", detector="rrht", centres=per_dot(centres), residual_rms_px=per_dot(fits.residual_rms_px),
         support_ratio=per_dot(fits.support), elapsed_s=time.perf_counter() - t_start,
         ellipse_centres=per_dot(fits.centres), axes_px=per_dot(fits.axes), edge_sigma_px=per_dot(fits.edge_sigma_px),
-        rotation_deg=order.rotation_deg,
+        rotation_deg=order.rotation_deg, shadowed=np.isin(np.arange(n), np.flatnonzero(found)[fits.shadowed]),
         orientation_ambiguous=order.ambiguous, homography=hom, timings_s=tm, **debug,
     )

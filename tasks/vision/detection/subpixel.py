@@ -84,6 +84,7 @@ class SubpixelParams:
     shadow_spread: float = 0.25
     shadow_rms_px: float = 0.15  # … and so are dots whose rim residual exceeds this and …
     shadow_rms_ratio: float = 3.0  # … this many times the median dot's (shadow_suspects)
+    shadow_keep: float = 0.5  # an unevenly lit suspect keeps its log-scale refit where that halves its rim residual
 
 
 @dataclass
@@ -620,8 +621,9 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
 
     Dots that may have a cast shadow's edge across them (:func:`shadow_suspects`) are fitted again
     on a log scale (:func:`log_levels`) from their coarse ellipses (:func:`shadow_starts`); a dot
-    keeps that ray fit where its rim residual is lower, without the pixel edge fit (whose model has
-    no shadow), and is marked in ``EllipseFits.shadowed``.
+    keeps that ray fit where its rim residual drops (an unevenly lit one: below ``params.shadow_keep``
+    times the first), without the pixel edge fit (whose model has no shadow), and is marked in
+    ``EllipseFits.shadowed``.
     """
     p = params or SubpixelParams()
     rng = np.random.default_rng(seed)
@@ -637,7 +639,11 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
         a_sel, th_sel = shadow_starts(axes, theta, axs, ths, ok & ~suspect, suspect)
         *fit, _, t_log = _rim_passes(image, centres[sel], a_sel, th_sel, sign, gap_ratio, coarse_factor, p,
                                      np.random.default_rng(seed + 1), log_scale=True)
-        better = fit[3] & (~ok[sel] | (fit[4] < rms[sel]))  # fitted, and nearer an ellipse than before
+        # fitted, and nearer an ellipse than before; much nearer where the dot is lit unevenly (light
+        # falling off across a dot, common in photographs, is no shadow edge: a refit on a log scale
+        # there is another estimator, not a better one)
+        keep = np.where(spread[sel] > p.shadow_spread, p.shadow_keep, 1.0)
+        better = fit[3] & (~ok[sel] | (fit[4] < keep * rms[sel]))
         for full, part in zip((cen, axs, ths, ok, rms, support, s_med), fit, strict=True):
             full[sel[better]] = part[better]
         shadowed[sel[better]] = True

@@ -19,6 +19,15 @@ contours:
   edge of the field). One smooth gain field is fitted to the grey levels at the far ends of all
   rays of the image, and every profile is divided by it before the step fits.
 
+* cast shadows: a shadow's edge across a dot multiplies the dot and the plate beside it by the
+  same factor on one side. Where the dot is printed darker than the shadow (a light dot on a dark
+  sheet, its lit part saturated, the rest at 0.35 of the light), the lit part's step down to the
+  shadowed part is steeper than the shadowed rim: the candidate search finds the lit part alone,
+  the derivative peaks of pass 1 lie on the shadow's edge, and the rim ellipse is the lit part's
+  (centres 0.5–9 px off on renders). Dots lit unevenly or with a rough rim fit are fitted again on
+  a log scale, where the shadow's edge is a smaller step than the rim on either side of it
+  (:func:`lit_spread`, :func:`shadow_suspects`, :func:`log_levels`).
+
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
 themselves (:mod:`tasks.vision.detection.edge_fit`): the rays' interpolation locks sharp rims to the

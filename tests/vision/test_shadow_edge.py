@@ -29,7 +29,7 @@ def test_dots_across_a_shadow_edge_keep_their_centres(case):
     """A shadow's edge across the grid: every dot within 0.2 px of its true centre, or a refusal
     that names the dot. Light dots: 14 px, the shadow at 0.35 of the light, its edge blurred by
     1 px, the lit dots saturated; dark dots: 20 px, the shadow at 0.5, the edge blurred by 0.5 px.
-    The rim fit before the log-scale refit put a light dot the edge crosses 0.51 px off (0.10 px
+    The rim fit before the log-scale refit put a light dot the edge crosses 0.51 px off (0.14 px
     now), a dark one 0.44 px (0.17 px)."""
     _, truth, to_edge, plate, det = _detect(case)
     assert (to_edge < 1.0).sum() >= 3  # the edge crosses dots

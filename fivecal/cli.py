@@ -237,6 +237,9 @@ def detect(
             for (r, c), (u, v), (eu, ev), (cu, cv), q, sr in zip(rc, shown, ellipse, result.centres,
                                                                  result.residual_rms_px, result.support_ratio,
                                                                  strict=True)]
+    if result.shadowed is not None:  # the dots refitted under a cast shadow's edge: the less certain centres
+        for d, sh in zip(dots, result.shadowed, strict=True):
+            d["shadowed"] = bool(sh)
     if json_output:
         typer.echo(json.dumps({"image": str(image), "ok": result.ok, "reason": result.reason,
                                "detector": result.detector, "elapsed_s": result.elapsed_s,

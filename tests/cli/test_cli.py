@@ -67,6 +67,7 @@ def test_detect_prints_ordered_centres_that_match_the_truth(tiny_campaign):
     assert result.exit_code == 0, result.output
     found = json.loads(result.output)
     assert found["ok"] and len(found["dots"]) == 49 and found["centres"] == "ellipse"
+    assert not any(d["shadowed"] for d in found["dots"])  # no cast shadow on a campaign view
     uv = np.array([[d["corrected_u_px"], d["corrected_v_px"]] for d in found["dots"]])
     ellipse = np.array([[d["ellipse_u_px"], d["ellipse_v_px"]] for d in found["dots"]])
     assert np.array_equal(np.array([[d["u_px"], d["v_px"]] for d in found["dots"]]), ellipse)  # the default

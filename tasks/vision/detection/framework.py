@@ -472,7 +472,9 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
                            gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
     bad = ~fits.ok | (fits.support < p.min_support)
-    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(0.5 * fits.axes[:, 1], 2.0 * factor)
+    # a dot cut by a shadow's edge may have been found as its lit part: its coarse centre need only lie inside it
+    reach = np.where(fits.shadowed, fits.axes[:, 1], 0.5 * fits.axes[:, 1])
+    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(reach, 2.0 * factor)
     bad |= moved
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
@@ -497,6 +499,6 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         ok=True, reason="", detector="rrht", centres=per_dot(centres), residual_rms_px=per_dot(fits.residual_rms_px),
         support_ratio=per_dot(fits.support), elapsed_s=time.perf_counter() - t_start,
         ellipse_centres=per_dot(fits.centres), axes_px=per_dot(fits.axes), edge_sigma_px=per_dot(fits.edge_sigma_px),
-        rotation_deg=order.rotation_deg,
+        rotation_deg=order.rotation_deg, shadowed=np.isin(np.arange(n), np.flatnonzero(found)[fits.shadowed]),
         orientation_ambiguous=order.ambiguous, homography=hom, timings_s=tm, **debug,
     )

@@ -32,6 +32,9 @@ class GridDetection:
     (None when the detector does not report them). On a refusal, lattice_px (L, 2) and
     lattice_coords (L, 2) int: the candidates the grid's lattice was grown through and their
     lattice coordinates (None when no lattice was grown).
+    shadowed: (rows*cols,) bool, "rrht": the dots a cast shadow's edge crosses, whose rims were
+    fitted again on a log scale (:func:`tasks.vision.detection.subpixel.refine_ellipses`); their
+    centres are less certain than the others' (up to 0.2–0.5 px on renders). None otherwise.
     timings_s: seconds per stage; elapsed_s: total seconds inside the detector.
     """
 
@@ -53,6 +56,7 @@ class GridDetection:
     candidate_diameters_px: np.ndarray | None = None
     lattice_px: np.ndarray | None = None
     lattice_coords: np.ndarray | None = None
+    shadowed: np.ndarray | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property

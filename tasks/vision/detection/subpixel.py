@@ -19,6 +19,15 @@ contours:
   edge of the field). One smooth gain field is fitted to the grey levels at the far ends of all
   rays of the image, and every profile is divided by it before the step fits.
 
+* cast shadows: a shadow's edge across a dot multiplies the dot and the plate beside it by the
+  same factor on one side. Where the dot is printed darker than the shadow (a light dot on a dark
+  sheet, its lit part saturated, the rest at 0.35 of the light), the lit part's step down to the
+  shadowed part is steeper than the shadowed rim: the candidate search finds the lit part alone,
+  the derivative peaks of pass 1 lie on the shadow's edge, and the rim ellipse is the lit part's
+  (centres 0.5–9 px off on renders). Dots lit unevenly or with a rough rim fit are fitted again on
+  a log scale, where the shadow's edge is a smaller step than the rim on either side of it
+  (:func:`lit_spread`, :func:`shadow_suspects`, :func:`log_levels`).
+
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
 themselves (:mod:`tasks.vision.detection.edge_fit`): the rays' interpolation locks sharp rims to the
@@ -78,6 +87,13 @@ class SubpixelParams:
     flat_field: bool = True  # divide the profiles by the image's gain field (see module docstring)
     pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.vision.detection.edge_fit)
     edge_fit: EdgeFitParams = field(default_factory=EdgeFitParams)
+    # dots whose rays' bright ends differ by more than this in ln grey level (lit_spread; a shadow at
+    # ≤ 0.78 of the light) are fitted again on a log scale (refine_ellipses)
+    shadow_refit: bool = True
+    shadow_spread: float = 0.25
+    shadow_rms_px: float = 0.15  # … and so are dots whose rim residual exceeds this and …
+    shadow_rms_ratio: float = 3.0  # … this many times the median dot's (shadow_suspects)
+    shadow_keep: float = 0.5  # an unevenly lit suspect keeps its log-scale refit where that halves its rim residual
 
 
 @dataclass
@@ -91,6 +107,7 @@ class EllipseFits:
     support: np.ndarray  # (K,) fraction of pass-2 rays that gave an inlier rim point
     edge_sigma_px: np.ndarray  # (K,) median edge blur σ from the step fits
     ok: np.ndarray  # (K,) bool
+    shadowed: np.ndarray  # (K,) bool: refitted on a log scale under a cast shadow's edge (refine_ellipses)
 
 
 @dataclass
@@ -484,22 +501,49 @@ def rim_reach_px(major_semi_axes_px: np.ndarray, gap_ratio: float) -> np.ndarray
     return (1.0 + min(0.8 * gap_ratio, 0.6)) * np.asarray(major_semi_axes_px, dtype=float)
 
 
-def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
-                    dark_dots: bool, gap_ratio: float, coarse_factor: int,
-                    params: SubpixelParams | None = None, seed: int = 0,
-                    timings: dict | None = None) -> EllipseFits:
-    """Refine coarse ellipses (already mapped to full-size px) to sub-pixel ellipse fits.
+def lit_spread(prof: np.ndarray, inside: np.ndarray, sign: float) -> np.ndarray:
+    """(K,) how unevenly each dot is lit: the 10–90 % range over its rays of the logarithm of the
+    grey level at the rays' bright end (the plate's side for dark dots, the dot's for light ones;
+    the mean of the last or first sixth of each pass-2 window). prof: (K, R, T) grey levels along
+    the rays; inside: (K, R, T) samples in the image; sign +1 for dark dots, −1 for light ones.
 
-    gap_ratio: (pitch − diameter) / diameter of the plate, bounding how far outside the rim a ray
-    may look before it reaches the neighbouring dot. coarse_factor: downsampling factor of the
-    coarse search (sets the pass-1 search band). timings: optional dict that receives the seconds
-    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting".
+    A cast shadow across a dot multiplies the dot and the plate beside it by the same factor on
+    one side of its edge: the bright end's level steps by that factor between rays (0.35 of the
+    light: 1.05). Vignetting and a light gradient change it by a few per cent across a dot.
     """
-    p = params or SubpixelParams()
-    rng = np.random.default_rng(seed)
+    ne = max(2, prof.shape[2] // 6)
+    end = prof[..., -ne:] if sign > 0 else prof[..., :ne]
+    level = np.log(np.maximum(end.mean(axis=2), 1.0))
+    use = inside.all(axis=2)
+    n = use.sum(axis=1)
+    ranked = np.sort(np.where(use, level, 1e30), axis=1)  # the rays in the image first
+
+    def quantile(f: float) -> np.ndarray:  # linear between order statistics, as np.percentile
+        pos = f * np.maximum(n - 1, 0)
+        lo = np.floor(pos).astype(int)
+        hi = np.minimum(lo + 1, np.maximum(n - 1, 0))
+        take = np.take_along_axis
+        return take(ranked, lo[:, None], 1)[:, 0] * (1 - (pos - lo)) + take(ranked, hi[:, None], 1)[:, 0] * (pos - lo)
+
+    return np.where(n >= 8, quantile(0.9) - quantile(0.1), 0.0)
+
+
+def log_levels(prof: np.ndarray) -> np.ndarray:
+    """ln of grey levels (float32, levels below 1 DN taken as 1). On a log scale a cast shadow's
+    edge is a step of ln(shadow factor) (≥ −1.05 for a shadow at 0.35 of the light), below a
+    printed dot's rim (ln of the dot-to-plate ratio, 2 for 30 against 220 DN) on either side of
+    the shadow: the rim locators then take the rim, not the shadow's edge, and a step fit across
+    both is pulled less."""
+    return np.log(np.maximum(prof, 1.0)).astype(np.float32)
+
+
+def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, rng, *, log_scale=False):
+    """Pass 1 and the pass-2 repetitions of :func:`refine_ellipses` on K dots (see the module
+    docstring); log_scale: every profile through :func:`log_levels`, without the gain field.
+    Returns (centres (K, 2), semi-axes (K, 2), angles (K,), fitted (K,), residual RMS (K,) px,
+    support (K,), median rim blur (K,) px, :func:`lit_spread` of the first pass 2 (K,), seconds
+    spent fitting ellipses)."""
     clock = time.perf_counter
-    t_begin = clock()
-    sign = 1.0 if dark_dots else -1.0
     k = len(centres)
     out_lim = rim_reach_px(axes[:, 0], gap_ratio)
     reach = float(out_lim.max()) + 4.0 * coarse_factor
@@ -507,6 +551,8 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     t0 = clock()
     samples = ransac_samples(k, p.pass1_rays, p.ransac_hypotheses, rng)
     prof1, t1, inside1, ang1, band1 = _pass1_profiles(crop1, centres, axes, theta, out_lim, coarse_factor, p)
+    if log_scale:
+        prof1 = log_levels(prof1)
     cen, axs, ths, sigma = over_dots(_pass1, k, prof1, t1, inside1, band1, centres, axes, theta, samples, ang=ang1,
                                      sign=sign, p=p)
     t_fit = clock() - t0
@@ -517,11 +563,16 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     rms = np.full(k, np.nan)
     support = np.zeros(k)
     s_med = np.full(k, np.nan)
+    spread = np.zeros(k)
     todo = np.arange(k)
-    gain = None
-    for _ in range(p.max_refine):
+    gain = GainField.flat() if log_scale else None
+    for repeat in range(p.max_refine):
         c0, a0, h0, s0 = cen[todo], axs[todo], ths[todo], sigma[todo]
         prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, c0, a0, h0, s0, gap_ratio, p)
+        if repeat == 0:  # every dot
+            spread = lit_spread(prof, inside, sign)
+        if log_scale:
+            prof = log_levels(prof)
         if p.flat_field and gain is None:  # fitted on the first pass, which sees every dot
             gain = fit_gain_field(prof, t, inside.all(axis=2), c0, ang)
         x, y, valid, s = over_dots(_pass2_rims, len(todo), prof, t, inside, c0, a0, h0, s0, half_w, rho,
@@ -540,9 +591,81 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
         todo = todo[okp & (oblique > p.refine_bias_px)]
         if len(todo) == 0:
             break
-    if p.pixel_edge_fit and ok.any():
+    return cen, axs, ths, ok, rms, support, s_med, spread, t_fit
+
+
+def shadow_suspects(spread: np.ndarray, rms: np.ndarray, ok: np.ndarray, p: SubpixelParams) -> np.ndarray:
+    """(K,) dots that may have a cast shadow's edge across them: lit unevenly (``spread``, :func:`lit_spread`,
+    above ``p.shadow_spread``), or fitted (``ok``) with a rim residual ``rms`` (px) above
+    ``p.shadow_rms_px`` and ``p.shadow_rms_ratio`` times the median of the fitted dots (a rim fitted to
+    the lit part of a dot and the shadow's edge is no ellipse; a dot found as its lit part only has
+    its rays' windows there, and the bright ends of its rays are all lit)."""
+    med = masked_median(rms[None, :], (ok & np.isfinite(rms))[None, :], default=np.inf)[0]
+    rough = ok & (rms > np.maximum(p.shadow_rms_px, p.shadow_rms_ratio * med))
+    return (spread > p.shadow_spread) | rough
+
+
+def shadow_starts(axes: np.ndarray, theta: np.ndarray, fitted_axes: np.ndarray, fitted_theta: np.ndarray,
+                  trusted: np.ndarray, shadowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starting semi-axes (S, 2) px and angles (S,) rad of the ``shadowed`` dots' refit (S of K).
+
+    A dot cut by a shadow's edge may have been found as its lit part only, a coarse ellipse much
+    narrower than the dot: where its minor semi-axis is below 3/4 of the median fitted one of the
+    ``trusted`` dots (of all dots if fewer than 3 are), it starts from that median ellipse.
+    axes, theta: the coarse ellipses (K, 2), (K,); fitted_axes, fitted_theta: the first fits.
+    """
+    ref = trusted if trusted.sum() >= 3 else np.ones(len(axes), bool)
+    med_axes = np.median(fitted_axes[ref], axis=0)
+    med_theta = float(np.median(fitted_theta[ref]))
+    a, th = axes[shadowed].copy(), theta[shadowed].copy()
+    narrow = a[:, 1] < 0.75 * med_axes[1]
+    a[narrow], th[narrow] = med_axes, med_theta
+    return a, th
+
+
+def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
+                    dark_dots: bool, gap_ratio: float, coarse_factor: int,
+                    params: SubpixelParams | None = None, seed: int = 0,
+                    timings: dict | None = None) -> EllipseFits:
+    """Refine coarse ellipses (already mapped to full-size px) to sub-pixel ellipse fits.
+
+    gap_ratio: (pitch − diameter) / diameter of the plate, bounding how far outside the rim a ray
+    may look before it reaches the neighbouring dot. coarse_factor: downsampling factor of the
+    coarse search (sets the pass-1 search band). timings: optional dict that receives the seconds
+    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting".
+
+    Dots that may have a cast shadow's edge across them (:func:`shadow_suspects`) are fitted again
+    on a log scale (:func:`log_levels`) from their coarse ellipses (:func:`shadow_starts`); a dot
+    keeps that ray fit where its rim residual drops (an unevenly lit one: below ``params.shadow_keep``
+    times the first), without the pixel edge fit (whose model has no shadow), and is marked in
+    ``EllipseFits.shadowed``.
+    """
+    p = params or SubpixelParams()
+    rng = np.random.default_rng(seed)
+    clock = time.perf_counter
+    t_begin = clock()
+    sign = 1.0 if dark_dots else -1.0
+    cen, axs, ths, ok, rms, support, s_med, spread, t_fit = _rim_passes(image, centres, axes, theta, sign, gap_ratio,
+                                                                        coarse_factor, p, rng)
+    shadowed = np.zeros(len(centres), bool)
+    suspect = shadow_suspects(spread, rms, ok, p) if p.shadow_refit else shadowed
+    if suspect.any():
+        sel = np.flatnonzero(suspect)
+        a_sel, th_sel = shadow_starts(axes, theta, axs, ths, ok & ~suspect, suspect)
+        *fit, _, t_log = _rim_passes(image, centres[sel], a_sel, th_sel, sign, gap_ratio, coarse_factor, p,
+                                     np.random.default_rng(seed + 1), log_scale=True)
+        # fitted, and nearer an ellipse than before; much nearer where the dot is lit unevenly (light
+        # falling off across a dot, common in photographs, is no shadow edge: a refit on a log scale
+        # there is another estimator, not a better one)
+        keep = np.where(spread[sel] > p.shadow_spread, p.shadow_keep, 1.0)
+        better = fit[3] & (~ok[sel] | (fit[4] < keep * rms[sel]))
+        for full, part in zip((cen, axs, ths, ok, rms, support, s_med), fit, strict=True):
+            full[sel[better]] = part[better]
+        shadowed[sel[better]] = True
+        t_fit += t_log
+    if p.pixel_edge_fit and (ok & ~shadowed).any():
         t0 = clock()
-        sel = np.flatnonzero(ok)
+        sel = np.flatnonzero(ok & ~shadowed)
         edges = fit_dot_edges(image, cen[sel], axs[sel], ths[sel], s_med[sel], p.edge_fit)
         use = sel[edges.ok]
         cen[use], axs[use], ths[use] = edges.centres[edges.ok], edges.axes[edges.ok], edges.theta[edges.ok]
@@ -550,4 +673,4 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     if timings is not None:
         timings["ellipse_fitting"] = timings.get("ellipse_fitting", 0.0) + t_fit
         timings["rim_sampling"] = timings.get("rim_sampling", 0.0) + clock() - t_begin - t_fit
-    return EllipseFits(cen, axs, ths, rms, support, s_med * 1.0, ok)
+    return EllipseFits(cen, axs, ths, rms, support, s_med * 1.0, ok, shadowed)

@@ -1,0 +1,63 @@
+"""The rim fit under a cast shadow's edge across the dots (tasks.vision.detection.subpixel: lit_spread,
+shadow_suspects, the log-scale refit), on renders with exact truth (tasks.simulation.shadow_edge).
+
+bench/bench_shadow_sweep.py runs the sweep of dot sizes, polarities, shadows and edges.
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from tasks.simulation.detector_stress import errors_up_to_symmetry
+from tasks.simulation.shadow_edge import ShadowEdgeCase, render_shadow_edge
+from tasks.vision.detection import detect_grid
+from tasks.vision.detection.subpixel import lit_spread, log_levels, refine_ellipses
+
+
+def _detect(case: ShadowEdgeCase):
+    image, truth, to_edge = render_shadow_edge(case)
+    plate = replace(case.plate, dark_dots=case.dark_dots)
+    return image, truth, to_edge, plate, detect_grid(image, plate, "rrht")
+
+
+@pytest.mark.parametrize("case", [
+    ShadowEdgeCase(14.0, dark_dots=False, shadow=0.35, edge_blur_px=1.0, exposure=1.3),
+    ShadowEdgeCase(20.0, dark_dots=True, shadow=0.5, edge_blur_px=0.5, edge_offset=0.4, seed=20),
+], ids=["light", "dark"])
+def test_dots_across_a_shadow_edge_keep_their_centres(case):
+    """A shadow's edge across the grid: every dot within 0.2 px of its true centre, or a refusal
+    that names the dot. Light dots: 14 px, the shadow at 0.35 of the light, its edge blurred by
+    1 px, the lit dots saturated; dark dots: 20 px, the shadow at 0.5, the edge blurred by 0.5 px.
+    The rim fit before the log-scale refit put a light dot the edge crosses 0.51 px off (0.14 px
+    now), a dark one 0.44 px (0.17 px)."""
+    _, truth, to_edge, plate, det = _detect(case)
+    assert (to_edge < 1.0).sum() >= 3  # the edge crosses dots
+    if not det.ok:
+        assert "row" in det.reason and "col" in det.reason, det.reason
+        return
+    err = errors_up_to_symmetry(plate, det.centres, truth)
+    assert err.max() < 0.2, np.round(err, 3)
+    assert 1 <= det.shadowed.sum() <= (to_edge < 1.0).sum()  # the detection says which dots it refitted
+
+
+def test_clean_dots_are_not_refitted():
+    """Without a shadow (the lit light dots saturated, the start 0.3 px off) no dot is a suspect
+    of the shadow refit: none is refitted on a log scale."""
+    case = ShadowEdgeCase(14.0, dark_dots=False, shadow=1.0, exposure=1.3)
+    image, truth, _, _, det = _detect(case)
+    assert det.ok and not det.shadowed.any()
+    fits = refine_ellipses(image, det.ellipse_centres + 0.3, det.axes_px, np.zeros(len(truth)), False, 0.5, 1)
+    assert fits.ok.all() and not fits.shadowed.any()
+
+
+def test_lit_spread_measures_the_shadow_factor():
+    """Rays whose bright ends lie half in a shadow at 0.4 of the light: the 10–90 % range of their ln
+    levels is ln(1/0.4) = 0.92; the dark ends (a light dot's) do not count; uniform light gives 0."""
+    prof = np.full((2, 20, 12), 30.0, np.float32)
+    prof[:, :, :4] = 200.0  # light dots: bright inside
+    prof[0, 10:, :6] *= 0.4
+    spread = lit_spread(prof, np.ones(prof.shape, bool), -1.0)
+    assert spread[0] == pytest.approx(np.log(1 / 0.4), abs=1e-5)
+    assert spread[1] == pytest.approx(0.0, abs=1e-6)
+    assert log_levels(np.array([0.0, 1.0, np.e], np.float32)) == pytest.approx([0.0, 0.0, 1.0])

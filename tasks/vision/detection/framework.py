@@ -52,7 +52,7 @@ from tasks.vision.detection.perspective import corrected_centres, fit_homography
 from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
 from tasks.vision.detection.result import GridDetection
 from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
-from tasks.vision.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
+from tasks.vision.detection.subpixel import EllipseFits, SubpixelParams, refine_ellipses, rim_reach_px
 from tasks.vision.detection.verify import dot_appearance
 
 
@@ -401,6 +401,31 @@ def small_dot_grid(band: BandSearch, finer: BandSearch) -> CoarseAttempt | None:
     return found if float(np.median(d_px)) < band.d_min else None
 
 
+def failed_fits(fits: EllipseFits, c0: np.ndarray, factor: int, min_support: float) -> np.ndarray:
+    """(K,) bool: rim fits that failed, have less than ``min_support`` of their rays, or moved from
+    their coarse centres ``c0`` (K, 2) px by more than half a minor axis (and 2 coarse px)."""
+    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(0.5 * fits.axes[:, 1], 2.0 * factor)
+    return ~fits.ok | (fits.support < min_support) | moved
+
+
+def refit_from_neighbours(image: np.ndarray, fits: EllipseFits, c0: np.ndarray, bad: np.ndarray, dark_dots: bool,
+                          gap_ratio: float, factor: int, p: FrameworkParams, tm: dict) -> None:
+    """Fit the ``bad`` dots' rims again (in place in ``fits``) from their coarse centres ``c0`` (K, 2) px
+    with the semi-axes and angle of the nearest dot fitted well.
+
+    Under a blur as wide as the gap between the dots a candidate's coarse circle can be a fraction of
+    its dot, and a rim search started from it locks on to the wrong edge (a neighbour's blurred rim);
+    the plate's dots are alike, so a fitted neighbour's ellipse is the better start. Only dots that
+    failed are fitted again: a grid whose fits all pass is not touched."""
+    good = np.flatnonzero(~bad)
+    k = np.flatnonzero(bad)
+    near = good[np.argmin(np.linalg.norm(c0[k, None, :] - fits.centres[None, good, :], axis=2), axis=1)]
+    again = refine_ellipses(image, c0[k], fits.axes[near], fits.theta[near], dark_dots, gap_ratio, factor,
+                            p.subpixel, seed=p.seed, timings=tm)
+    for name in ("centres", "axes", "theta", "residual_rms_px", "support", "edge_sigma_px", "ok"):
+        getattr(fits, name)[k] = getattr(again, name)
+
+
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
                 px_per_mm_hint: float | None = None, correct_perspective: bool = True,
                 mirrored: bool = False, expected_centres_px: np.ndarray | None = None,
@@ -469,9 +494,10 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     c0 = coarse_to_full(circles.centres[idx], factor)
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
                            gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
-    bad = ~fits.ok | (fits.support < p.min_support)
-    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(0.5 * fits.axes[:, 1], 2.0 * factor)
-    bad |= moved
+    bad = failed_fits(fits, c0, factor, p.min_support)
+    if bad.any() and (~bad).sum() >= 3:
+        refit_from_neighbours(image, fits, c0, bad, plate.dark_dots, gap_ratio, factor, p, tm)
+        bad = failed_fits(fits, c0, factor, p.min_support)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
         r, c = rc[found][k]

@@ -363,6 +363,52 @@ def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams,
     return again if again.ok else None
 
 
+BLUR_SHRINK = (1.0, 1.4, 1.8)
+"""Factors by which a blur as wide as the gap between the dots can shrink their candidates (the Hough
+rim and the region's core of an 8–16 px dot under a blur of σ ≈ 2 px are 0.5–0.9 of the dot): the
+candidates' sizes are scaled by each in turn when no band gives the grid (:func:`shrunk_by_blur`)."""
+FAINT_REGION_OFFSETS = (0.04, 0.02)
+"""Region thresholds (fractions of the image's grey range below the local mean,
+:func:`tasks.vision.detection.blobs.contour_candidates`) for faint dots: under such a blur the dots'
+cores are only a few per cent of a busy image's range darker than the mean around them."""
+
+
+def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotPlate, p: FrameworkParams, tm: dict, *,
+                   expected_rotation_deg: float | None, mirrored: bool) -> CoarseAttempt | None:
+    """The grid from one band's candidates (``searched``: each band's attempt and its search) with the
+    faint regions of its coarse image added (:data:`FAINT_REGION_OFFSETS`, each passing the candidates'
+    test) and their sizes scaled by a factor of :data:`BLUR_SHRINK`, or None when none gives it.
+
+    A blur as wide as the gap between the dots (σ ≈ 2 px on 8–16 px dots 4–8 px apart) fills the gap:
+    few dots keep a rim for the Hough search or a core below the regions' usual threshold, and what is
+    found of them is 0.5–0.9 of the dot. The lattice links dots whose spacing is at most 1.35 × pitch /
+    diameter of their size: a candidate at 0.6 of its dot is 2.5 of its own sizes from its neighbours
+    at a pitch of 1.5 diameters, beyond that. Scaled, the lattice links them and the rim fits start
+    from the dot's size; every test of the window (its completeness and uniqueness, the strays, the
+    parallelograms, the rim fits) is the same. Bands in their order, then the offsets, then the factors
+    from the smallest."""
+    for a, band in searched:
+        if a.levels is None or a.image is None:
+            continue
+        for offset in FAINT_REGION_OFFSETS:
+            t0 = time.perf_counter()
+            regions = contour_candidates(a.image, plate.dark_dots, band.d_min / a.factor, band.d_max / a.factor, offset)
+            faint, faint_levels = verified(a.image, regions, plate.dark_dots, p)
+            c, added = merge_candidates(a.circles, faint)
+            levels = np.concatenate([a.levels, faint_levels[added]])
+            tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t0
+            if len(c) < 4:
+                continue
+            for g in BLUR_SHRINK:
+                grown = CoarseCircles(c.centres, c.axes * g, c.theta, c.votes, c.rim_ratio)
+                again = ordered_attempt(a.image, grown, levels, plate, a.factor, tm,
+                                        expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
+                                        expected_centres_px=None)
+                if again.ok:
+                    return again
+    return None
+
+
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
                      ) -> tuple[CoarseCircles, np.ndarray]:
     """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
@@ -422,6 +468,13 @@ def refit_from_neighbours(image: np.ndarray, fits: EllipseFits, c0: np.ndarray, 
     near = good[np.argmin(np.linalg.norm(c0[k, None, :] - fits.centres[None, good, :], axis=2), axis=1)]
     again = refine_ellipses(image, c0[k], fits.axes[near], fits.theta[near], dark_dots, gap_ratio, factor,
                             p.subpixel, seed=p.seed, timings=tm)
+    still = failed_fits(again, c0[k], factor, p.min_support)
+    if still.any():  # the rim search (pass 1) went astray again: the step fits straight from the neighbour's
+        j = np.flatnonzero(still)
+        last = refine_ellipses(image, c0[k[j]], fits.axes[near[j]], fits.theta[near[j]], dark_dots, gap_ratio, factor,
+                               p.subpixel, seed=p.seed, timings=tm, blur_px=fits.edge_sigma_px[near[j]])
+        for name in ("centres", "axes", "theta", "residual_rms_px", "support", "edge_sigma_px", "ok"):
+            getattr(again, name)[j] = getattr(last, name)
     for name in ("centres", "axes", "theta", "residual_rms_px", "support", "edge_sigma_px", "ok"):
         getattr(fits, name)[k] = getattr(again, name)
 
@@ -469,6 +522,10 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     if not attempt.ok:
         joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = joined if joined is not None else attempt
+    if not attempt.ok and expected_centres_px is None:
+        searched = list(zip(attempts, bands, strict=False))  # a band after the one that found a grid is not searched
+        blurred = shrunk_by_blur(searched, plate, p, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
+        attempt = blurred if blurred is not None else attempt
     if not attempt.ok and expected_centres_px is None:
         completed = complete_window(attempt, plate, p, tm, expected_rotation_deg=expected_rotation_deg,
                                     mirrored=mirrored)

@@ -487,13 +487,15 @@ def rim_reach_px(major_semi_axes_px: np.ndarray, gap_ratio: float) -> np.ndarray
 def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
                     dark_dots: bool, gap_ratio: float, coarse_factor: int,
                     params: SubpixelParams | None = None, seed: int = 0,
-                    timings: dict | None = None) -> EllipseFits:
+                    timings: dict | None = None, blur_px: np.ndarray | None = None) -> EllipseFits:
     """Refine coarse ellipses (already mapped to full-size px) to sub-pixel ellipse fits.
 
     gap_ratio: (pitch − diameter) / diameter of the plate, bounding how far outside the rim a ray
     may look before it reaches the neighbouring dot. coarse_factor: downsampling factor of the
     coarse search (sets the pass-1 search band). timings: optional dict that receives the seconds
-    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting".
+    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting". blur_px: (K,) edge blur σ
+    px of ellipses known to be close already (a fitted neighbour's): pass 1 is then skipped and pass 2
+    starts from the ellipses given.
     """
     p = params or SubpixelParams()
     rng = np.random.default_rng(seed)
@@ -505,10 +507,13 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     reach = float(out_lim.max()) + 4.0 * coarse_factor
     crop1 = crop_rois(image, centres, reach)
     t0 = clock()
-    samples = ransac_samples(k, p.pass1_rays, p.ransac_hypotheses, rng)
-    prof1, t1, inside1, ang1, band1 = _pass1_profiles(crop1, centres, axes, theta, out_lim, coarse_factor, p)
-    cen, axs, ths, sigma = over_dots(_pass1, k, prof1, t1, inside1, band1, centres, axes, theta, samples, ang=ang1,
-                                     sign=sign, p=p)
+    if blur_px is None:
+        samples = ransac_samples(k, p.pass1_rays, p.ransac_hypotheses, rng)
+        prof1, t1, inside1, ang1, band1 = _pass1_profiles(crop1, centres, axes, theta, out_lim, coarse_factor, p)
+        cen, axs, ths, sigma = over_dots(_pass1, k, prof1, t1, inside1, band1, centres, axes, theta, samples,
+                                         ang=ang1, sign=sign, p=p)
+    else:
+        cen, axs, ths, sigma = centres, axes, theta, np.clip(np.asarray(blur_px, dtype=float), 0.5, None)
     t_fit = clock() - t0
     level = int(np.clip(np.floor(np.median(sigma) / p.sigma_per_level), 1, p.max_level))
     crop2 = crop1 if level == 1 else crop_rois(image, centres, reach, level)

@@ -35,7 +35,7 @@ Units: px of the input image unless a name says otherwise; frames as in :mod:`ta
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import pairwise
 
 import numpy as np
@@ -454,29 +454,41 @@ def failed_fits(fits: EllipseFits, c0: np.ndarray, factor: int, min_support: flo
     return ~fits.ok | (fits.support < min_support) | moved
 
 
+FIT_FIELDS = ("centres", "axes", "theta", "residual_rms_px", "support", "edge_sigma_px", "ok")
+REFIT_STARTS = 3  # the nearest dots fitted well whose ellipses a failed dot's refit starts from, in turn
+
+
 def refit_from_neighbours(image: np.ndarray, fits: EllipseFits, c0: np.ndarray, bad: np.ndarray, dark_dots: bool,
                           gap_ratio: float, factor: int, p: FrameworkParams, tm: dict) -> None:
     """Fit the ``bad`` dots' rims again (in place in ``fits``) from their coarse centres ``c0`` (K, 2) px
-    with the semi-axes and angle of the nearest dot fitted well.
+    with the semi-axes and angle of a dot fitted well: the nearest, then the next (up to
+    :data:`REFIT_STARTS`); from each, the rim search of pass 1 first, then pass 2 straight from its
+    ellipse and edge blur.
 
     Under a blur as wide as the gap between the dots a candidate's coarse circle can be a fraction of
     its dot, and a rim search started from it locks on to the wrong edge (a neighbour's blurred rim);
     the plate's dots are alike, so a fitted neighbour's ellipse is the better start. Only dots that
     failed are fitted again: a grid whose fits all pass is not touched."""
     good = np.flatnonzero(~bad)
-    k = np.flatnonzero(bad)
-    near = good[np.argmin(np.linalg.norm(c0[k, None, :] - fits.centres[None, good, :], axis=2), axis=1)]
-    again = refine_ellipses(image, c0[k], fits.axes[near], fits.theta[near], dark_dots, gap_ratio, factor,
-                            p.subpixel, seed=p.seed, timings=tm)
-    still = failed_fits(again, c0[k], factor, p.min_support)
-    if still.any():  # the rim search (pass 1) went astray again: the step fits straight from the neighbour's
-        j = np.flatnonzero(still)
-        last = refine_ellipses(image, c0[k[j]], fits.axes[near[j]], fits.theta[near[j]], dark_dots, gap_ratio, factor,
-                               p.subpixel, seed=p.seed, timings=tm, blur_px=fits.edge_sigma_px[near[j]])
-        for name in ("centres", "axes", "theta", "residual_rms_px", "support", "edge_sigma_px", "ok"):
-            getattr(again, name)[j] = getattr(last, name)
-    for name in ("centres", "axes", "theta", "residual_rms_px", "support", "edge_sigma_px", "ok"):
-        getattr(fits, name)[k] = getattr(again, name)
+    # the neighbour model needs every dot's fit: a subset's dots would model only each other
+    sub = replace(p.subpixel, neighbour_iterations=0)
+    for rank in range(min(REFIT_STARTS, len(good))):
+        k = np.flatnonzero(bad)
+        dist = np.linalg.norm(c0[k, None, :] - fits.centres[None, good, :], axis=2)
+        near = good[np.argsort(dist, axis=1, kind="stable")[:, rank]]
+        for blur in (None, fits.edge_sigma_px[near]):
+            again = refine_ellipses(image, c0[k], fits.axes[near], fits.theta[near], dark_dots, gap_ratio, factor,
+                                    sub, seed=p.seed, timings=tm, blur_px=blur)
+            now = ~failed_fits(again, c0[k], factor, p.min_support)
+            for name in FIT_FIELDS:
+                getattr(fits, name)[k[now]] = getattr(again, name)[now]
+            bad[k[now]] = False
+            k, near = k[~now], near[~now]
+            if not len(k):
+                return
+    if bad.any():  # still failed: the last attempt's fits, for the reason given
+        for name in FIT_FIELDS:
+            getattr(fits, name)[k] = getattr(again, name)[~now]
 
 
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
@@ -553,7 +565,7 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
                            gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
     bad = failed_fits(fits, c0, factor, p.min_support)
     if bad.any() and (~bad).sum() >= 3:
-        refit_from_neighbours(image, fits, c0, bad, plate.dark_dots, gap_ratio, factor, p, tm)
+        refit_from_neighbours(image, fits, c0, bad.copy(), plate.dark_dots, gap_ratio, factor, p, tm)
         bad = failed_fits(fits, c0, factor, p.min_support)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])

@@ -44,6 +44,7 @@ from tasks.vision.detection.conics import (
     ransac_samples,
 )
 from tasks.vision.detection.edge_fit import EdgeFitParams, fit_dot_edges
+from tasks.vision.detection.neighbour_rims import DotRims, neighbour_shift
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.stats import masked_median
@@ -76,6 +77,10 @@ class SubpixelParams:
     refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this
     blur_curvature_correction: bool = True
     flat_field: bool = True  # divide the profiles by the image's gain field (see module docstring)
+    # neighbours: dots whose rays meet a neighbour's blurred rim, by more than neighbour_min_shift of their
+    # contrast, are fitted again (up to neighbour_iterations times) with it taken out (neighbour_rims)
+    neighbour_iterations: int = 2
+    neighbour_min_shift: float = 0.02
     pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.vision.detection.edge_fit)
     edge_fit: EdgeFitParams = field(default_factory=EdgeFitParams)
 
@@ -375,17 +380,18 @@ def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p
 
 def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, *, ang, p, free_slope: bool):
     """The two step fits of pass 2 (σ free, then σ from the per-dot blur model), optionally with a
-    sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable) (K, R)."""
+    sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable, fitted levels
+    inside and outside the rim) (K, R)."""
     te, s, conv, lev_in, lev_out, _ = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations,
                                                free_slope=free_slope)
     usable = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
     s2 = blur_model(s, usable, ang)
     if p.shared_blur_iterations:
         # refit with σ from the smooth per-dot model: t_e no longer trades off against a noisy s
-        te, _, conv, _, _, _ = step_fit(prof, t, te, lev_in, lev_out, sigma,
-                                        p.shared_blur_iterations + int(free_slope) * p.erf_iterations,
-                                        fixed_sigma=np.sqrt(s2), free_slope=free_slope)
-    return te, conv, s, s2, usable
+        te, _, conv, lev_in, lev_out, _ = step_fit(prof, t, te, lev_in, lev_out, sigma,
+                                                   p.shared_blur_iterations + int(free_slope) * p.erf_iterations,
+                                                   fixed_sigma=np.sqrt(s2), free_slope=free_slope)
+    return te, conv, s, s2, usable, lev_in, lev_out
 
 
 def shading(prof, t, te, s, ok, ang, contrast, minor_axes) -> np.ndarray:
@@ -428,11 +434,16 @@ def _pass2_profiles(crop, cen, axs, ths, sigma, gap_ratio, p):
     return prof, t, inside, ang, half_w, rho
 
 
-def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang, gain, p):
+def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, shift=None, *, sign, ang, gain, p):
     """Precise rim points of K dots from their pass-2 rays (:func:`_pass2_profiles`): (x, y,
-    valid (K, R), s (K, R)). gain: the image's gain field (used with ``p.flat_field``)."""
+    valid (K, R), s (K, R), median fitted grey level inside and outside the rim over the valid rays
+    (K,)). gain: the image's gain field (used with ``p.flat_field``); shift: (K, R, T) grey levels the
+    neighbours' blurred rims add to the (flattened) profiles, taken out before the fits
+    (:func:`tasks.vision.detection.neighbour_rims.neighbour_shift`)."""
     if p.flat_field:
         prof = flatten_profiles(prof, t, cen, ang, gain)
+    if shift is not None:
+        prof = prof - shift
     n2 = t.shape[2]
     ne = max(2, n2 // 6)
     i_in = prof[..., :ne].mean(axis=2)
@@ -444,15 +455,16 @@ def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang
     g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
     dts = (2 * half_w / (n2 - 1))[:, None]
     te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
-    te, conv, s, s2, usable = over_dots_compiled(_step_fits, len(te), prof, t, te, i_in, i_out, sigma, contrast, med_c,
-                                                 inside, ang=ang, p=p, free_slope=False)
+    te, conv, s, s2, usable, lev_in, lev_out = over_dots_compiled(_step_fits, len(te), prof, t, te, i_in, i_out, sigma,
+                                                                  contrast, med_c, inside, ang=ang, p=p,
+                                                                  free_slope=False)
     if p.inner_slope:  # dots darker on one side: refit them with a sloped inside, which would move t_e
         shaded = shading(prof, t, te, np.sqrt(s2), usable, ang, med_c, axs[:, 1]) > p.min_shading
         if shaded.any():
             k = np.flatnonzero(shaded)
             fits = _step_fits(prof[k], t[k], te[k], i_in[k], i_out[k], sigma[k], contrast[k], med_c[k], inside[k],
                               ang=ang, p=p, free_slope=True)
-            for full, part in zip((te, conv, s, s2, usable), fits, strict=True):
+            for full, part in zip((te, conv, s, s2, usable, lev_in, lev_out), fits, strict=True):
                 full[k] = part
     valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
     valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(np.sqrt(s2), half_w[:, None] / 2)
@@ -460,7 +472,7 @@ def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang
         te = te + curvature_correction(s2, ang, axs, ths)
     x = cen[:, 0:1] + np.cos(ang)[None, :] * te
     y = cen[:, 1:2] + np.sin(ang)[None, :] * te
-    return x, y, valid, s
+    return x, y, valid, s, masked_median(lev_in, valid), masked_median(lev_out, valid)
 
 
 def _rim_ellipses(x, y, valid, s, c0, a0, *, n_rays):
@@ -524,13 +536,14 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     s_med = np.full(k, np.nan)
     todo = np.arange(k)
     gain = None
+    lev_in, lev_out = np.full(k, np.nan), np.full(k, np.nan)
     for _ in range(p.max_refine):
         c0, a0, h0, s0 = cen[todo], axs[todo], ths[todo], sigma[todo]
         prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, c0, a0, h0, s0, gap_ratio, p)
         if p.flat_field and gain is None:  # fitted on the first pass, which sees every dot
             gain = fit_gain_field(prof, t, inside.all(axis=2), c0, ang)
-        x, y, valid, s = over_dots(_pass2_rims, len(todo), prof, t, inside, c0, a0, h0, s0, half_w, rho,
-                                   sign=sign, ang=ang, gain=gain, p=p)
+        x, y, valid, s, lev_in[todo], lev_out[todo] = over_dots(_pass2_rims, len(todo), prof, t, inside, c0, a0, h0,
+                                                                s0, half_w, rho, sign=sign, ang=ang, gain=gain, p=p)
         t0 = clock()
         okp, cn, an, tn, rms_p, s_med_p, support_p = over_dots(_rim_ellipses, len(todo), x, y, valid, s, c0, a0,
                                                                n_rays=len(ang))
@@ -545,6 +558,26 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
         todo = todo[okp & (oblique > p.refine_bias_px)]
         if len(todo) == 0:
             break
+    if p.neighbour_iterations and ok.sum() >= 2:
+        t0 = clock()
+        dots = DotRims(cen, axs, ths, s_med, lev_in, lev_out)  # the arrays themselves: updated as dots move
+        for _ in range(p.neighbour_iterations):
+            prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, cen, axs, ths, sigma, gap_ratio, p)
+            shift = neighbour_shift(dots, np.arange(k), cen, ang, t)
+            reached = ok & (np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in))
+            todo = np.flatnonzero(reached)
+            if not len(todo):
+                break
+            x, y, valid, s, li, lo = _pass2_rims(prof[todo], t[todo], inside[todo], cen[todo], axs[todo], ths[todo],
+                                                 sigma[todo], half_w[todo], rho[todo], shift[todo], sign=sign,
+                                                 ang=ang, gain=gain, p=p)
+            okp, cn, an, tn, rms_p, s_med_p, support_p = _rim_ellipses(x, y, valid, s, cen[todo], axs[todo],
+                                                                       n_rays=len(ang))
+            upd = todo[okp]
+            cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
+            rms[upd], s_med[upd], support[upd], lev_in[upd], lev_out[upd] = (
+                rms_p[okp], s_med_p[okp], support_p[okp], li[okp], lo[okp])
+        t_fit += clock() - t0
     if p.pixel_edge_fit and ok.any():
         t0 = clock()
         sel = np.flatnonzero(ok)

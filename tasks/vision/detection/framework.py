@@ -18,7 +18,10 @@ look like a filled dot on a clear ring of plate
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,
 two neighbouring bands' candidates are ordered together, then the most plate-like band's lattice
 (:meth:`CoarseAttempt.plate_likeness`) is looked at again where its best window lacks one or two
-dots inside the image (:mod:`tasks.vision.detection.completion`). A view without exactly one
+dots inside the image (:mod:`tasks.vision.detection.completion`); before that, for dots blurred as
+wide as the gap between them, each band's candidates with its faint regions and their sizes scaled
+for the blur's shrinking (:func:`shrunk_by_blur`). A dot whose rim fit fails is fitted again from a
+well-fitted neighbour's ellipse (:func:`refit_from_neighbours`). A view without exactly one
 complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`,
 :mod:`tasks.vision.detection.lattice_reason`), the most plate-like band's: a wrong labelling is
 worse than none.

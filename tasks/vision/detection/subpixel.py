@@ -19,6 +19,10 @@ contours:
   edge of the field). One smooth gain field is fitted to the grey levels at the far ends of all
   rays of the image, and every profile is divided by it before the step fits.
 
+* neighbours: where a dot's rays reach a neighbour's blurred rim (a blur as wide as the gap between
+  the dots), the neighbours' rims are modelled from their fits and taken out of the profiles, and
+  the dot is fitted again (:mod:`tasks.vision.detection.neighbour_rims`).
+
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
 themselves (:mod:`tasks.vision.detection.edge_fit`): the rays' interpolation locks sharp rims to the

@@ -4,12 +4,12 @@ Under a blur as wide as the gap between the dots (σ ≈ 2–3 px on 10–16 px 
 outer end of a dot's rim ray lies on the tail of its neighbour's blurred rim: the profile does not
 level off at the plate's grey, and the step fit puts the rim further out on the neighbour's side,
 pulling the centre towards the neighbours (0.2–0.6 px at the edge of the grid, where the neighbours
-are all on one side). Each neighbour j is modelled as a disc of its fitted ellipse's
-area, stretched to the ellipse, blurred by its own edge σ s_j: at a point it shifts the grey level by
-(a_j − b_j) P, a_j and b_j its fitted levels inside and outside the rim and P the fraction of a
-Gaussian of σ s_j round the point that falls on the disc (a non-central χ² with 2 degrees of freedom);
-the shift is removed from the profile before the step fit. Units: px of the full-size image, grey levels of the
-profiles; angles rad from +u towards +v.
+are all on one side). Each neighbour j is modelled as its fitted ellipse's rim
+blurred by its own edge σ s_j: at a point d px outside that ellipse (along the line to its centre)
+it shifts the grey level by (a_j − b_j) Φ(−(d + s_j²/(2 r_j)) / s_j), a_j and b_j its fitted levels
+inside and outside the rim, r_j its mean semi-axis (the blurred rim's half level lies s²/(2 r) inside
+the rim); the shift is removed from the profile before the step fit. Units: px of the full-size
+image, grey levels of the profiles; angles rad from +u towards +v.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import ncx2
+from scipy.special import ndtr
 
 N_NEIGHBOURS = 8  # the nearest other dots modelled per dot: a lattice's 8 surrounding ones
 
@@ -35,6 +35,31 @@ class DotRims:
     sigma: np.ndarray
     level_in: np.ndarray
     level_out: np.ndarray
+
+
+TAIL_SIGMAS = 4.0
+"""A neighbour's blurred rim further than this many of its σ beyond a dot's rays shifts them by less
+than 1e-4 of its contrast: :func:`within_reach` leaves it out."""
+
+
+def within_reach(dots: DotRims, reach_px: np.ndarray) -> np.ndarray:
+    """(N,) bool: the dots whose rays, reaching ``reach_px`` (N,) px beyond their rims, come within
+    :data:`TAIL_SIGMAS` σ of another dot's rim (rims bounded by the major semi-axes: a cheap test that
+    never misses a dot :func:`neighbour_shift` would shift)."""
+    n = len(dots.centres)
+    usable = np.isfinite(dots.centres).all(axis=1) & np.isfinite(dots.axes).all(axis=1) & np.isfinite(dots.sigma)
+    pool = np.flatnonzero(usable)
+    out = np.zeros(n, bool)
+    if len(pool) < 2:
+        return out
+    n_q = min(N_NEIGHBOURS + 1, len(pool))
+    dist, near = cKDTree(dots.centres[pool]).query(dots.centres[pool], k=n_q)
+    near = pool[near]
+    me = pool[:, None]
+    gap = dist - dots.axes[me, 0] - dots.axes[near, 0]
+    close = (near != me) & (gap < reach_px[me] + TAIL_SIGMAS * dots.sigma[near])
+    out[pool] = close.any(axis=1)
+    return out
 
 
 def neighbour_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -66,10 +91,10 @@ def neighbour_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.nda
         c, s = np.cos(dots.theta[j])[:, None, None], np.sin(dots.theta[j])[:, None, None]
         x = (du * c + dv * s) / dots.axes[j, 0, None, None]
         y = (-du * s + dv * c) / dots.axes[j, 1, None, None]
-        radius = np.sqrt(dots.axes[j, 0] * dots.axes[j, 1])[:, None, None]  # the ellipse as a disc of its area
+        dist = np.hypot(du, dv) * (1.0 - 1.0 / np.maximum(np.hypot(x, y), 1e-6))  # outside the ellipse > 0
         sig = dots.sigma[j, None, None]
-        # a disc of radius R blurred by σ, at ρ from its centre: P(|ρ + σ N₂| ≤ R), non-central χ² with 2 dof
-        inside = ncx2.cdf((radius / sig) ** 2, 2, (np.hypot(x, y) * radius / sig) ** 2)
-        shift = (dots.level_in[j] - dots.level_out[j])[:, None, None] * inside
+        # the blurred rim's half level lies σ²/(2 r) inside the rim (its curvature, r the mean semi-axis)
+        dist = dist + sig**2 / (2.0 * np.sqrt(dots.axes[j, 0] * dots.axes[j, 1]))[:, None, None]
+        shift = (dots.level_in[j] - dots.level_out[j])[:, None, None] * ndtr(-dist / sig)
         out += np.where(other[:, None, None], shift, 0.0).astype(np.float32)
     return out

@@ -48,7 +48,7 @@ from tasks.vision.detection.conics import (
     ransac_samples,
 )
 from tasks.vision.detection.edge_fit import EdgeFitParams, fit_dot_edges
-from tasks.vision.detection.neighbour_rims import DotRims, neighbour_shift
+from tasks.vision.detection.neighbour_rims import DotRims, neighbour_shift, within_reach
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.stats import masked_median
@@ -415,6 +415,14 @@ def shading(prof, t, te, s, ok, ang, contrast, minor_axes) -> np.ndarray:
     return np.hypot(grad[:, 0], grad[:, 1]) * minor_axes / np.where(np.isfinite(contrast), contrast, np.inf)
 
 
+def _window_half_widths(sigma, axs, gap_ratio, lv, p):
+    """(K,) px: the pass-2 windows' half-widths round the rim, ±(k σ + pad) (see :func:`_pass2_profiles`)."""
+    ksig = p.window_sigmas + (p.window_sigmas_blurry - p.window_sigmas) * np.clip(sigma - 1.0, 0.0, 1.0)
+    half_w = ksig * sigma + p.window_pad_px * lv  # (K,)
+    half_w = np.minimum(half_w, np.maximum(1.0 * axs[:, 1], 2.0 * lv))
+    return np.minimum(half_w, np.maximum(1.6 * gap_ratio * axs[:, 1], 2.0 * lv))
+
+
 def _pass2_profiles(crop, cen, axs, ths, sigma, gap_ratio, p):
     """Pass-2 rays of K dots: (grey levels (K, R, T), t (K, R, T) px along the rays, samples inside
     the image (K, R, T), ray angles (R,), window half-widths (K,) px, window centres (K, R) px).
@@ -426,10 +434,7 @@ def _pass2_profiles(crop, cen, axs, ths, sigma, gap_ratio, p):
     # window: ±(k σ + pad); k grows from window_sigmas (sharp rims, where extra flat samples only
     # add interpolation artefacts) to window_sigmas_blurry for σ ≥ 2 px (blurry rims, whose
     # tails are not Gaussian and need the wider view)
-    ksig = p.window_sigmas + (p.window_sigmas_blurry - p.window_sigmas) * np.clip(sigma - 1.0, 0.0, 1.0)
-    half_w = ksig * sigma + p.window_pad_px * lv  # (K,)
-    half_w = np.minimum(half_w, np.maximum(1.0 * axs[:, 1], 2.0 * lv))
-    half_w = np.minimum(half_w, np.maximum(1.6 * gap_ratio * axs[:, 1], 2.0 * lv))
+    half_w = _window_half_widths(sigma, axs, gap_ratio, lv, p)
     n2 = int(np.ceil(2 * half_w.max() / lv)) + 1
     u2 = np.linspace(-1.0, 1.0, n2)
     rho = ellipse_radius_along(cen, axs, ths, ang)  # (K, R)
@@ -566,15 +571,20 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
         t0 = clock()
         dots = DotRims(cen, axs, ths, s_med, lev_in, lev_out)  # the arrays themselves: updated as dots move
         for _ in range(p.neighbour_iterations):
-            prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, cen, axs, ths, sigma, gap_ratio, p)
-            shift = neighbour_shift(dots, np.arange(k), cen, ang, t)
-            reached = ok & (np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in))
-            todo = np.flatnonzero(reached)
-            if not len(todo):
+            near = np.flatnonzero(ok & within_reach(dots, _window_half_widths(sigma, axs, gap_ratio, crop2.level, p)))
+            if not len(near):
                 break
-            x, y, valid, s, li, lo = _pass2_rims(prof[todo], t[todo], inside[todo], cen[todo], axs[todo], ths[todo],
-                                                 sigma[todo], half_w[todo], rho[todo], shift[todo], sign=sign,
-                                                 ang=ang, gain=gain, p=p)
+            prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, cen[near], axs[near], ths[near], sigma[near],
+                                                                gap_ratio, p)
+            shift = neighbour_shift(dots, near, cen[near], ang, t)
+            reached = np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in)[near]
+            if not reached.any():
+                break
+            x, y, valid, s, li, lo = _pass2_rims(prof[reached], t[reached], inside[reached], cen[near[reached]],
+                                                 axs[near[reached]], ths[near[reached]], sigma[near[reached]],
+                                                 half_w[reached], rho[reached], shift[reached], sign=sign, ang=ang,
+                                                 gain=gain, p=p)
+            todo = near[reached]
             okp, cn, an, tn, rms_p, s_med_p, support_p = _rim_ellipses(x, y, valid, s, cen[todo], axs[todo],
                                                                        n_rays=len(ang))
             upd = todo[okp]

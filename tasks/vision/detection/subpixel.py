@@ -569,8 +569,9 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
             break
     if p.neighbour_iterations and ok.sum() >= 2:
         t0 = clock()
-        dots = DotRims(cen, axs, ths, s_med, lev_in, lev_out)  # the arrays themselves: updated as dots move
         for _ in range(p.neighbour_iterations):
+            # a dot whose fit failed is no model of its rim: left out as a neighbour (NaN level)
+            dots = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
             near = np.flatnonzero(ok & within_reach(dots, _window_half_widths(sigma, axs, gap_ratio, crop2.level, p)))
             if not len(near):
                 break

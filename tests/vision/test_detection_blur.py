@@ -15,9 +15,10 @@ import cv2
 import numpy as np
 import pytest
 
+from tasks.machine.plate import DotPlate
 from tasks.simulation.detector_stress import StressCase, errors_up_to_symmetry, render_stress_case
 from tasks.vision.detection import detect_grid
-from tasks.vision.detection.framework import FrameworkParams, detect_rrht
+from tasks.vision.detection.framework import FrameworkParams, detect_rrht, skips_candidates
 from tasks.vision.detection.neighbour_rims import DotRims, neighbour_shift
 
 
@@ -82,3 +83,14 @@ def test_neighbour_shift_matches_a_blurred_disc():
     grey = image[40, (26 + t[0, 0]).astype(int)]  # whole px along the row through both centres
     assert np.abs(shift - (grey - 200.0)).max() < 6.0  # of a 160 DN step: an edge moved in by its curvature
     assert shift[6] < -60.0  # at the disc's rim (t 8 px): half the step
+
+
+def test_a_window_stepping_over_dots_of_a_larger_grid_is_not_taken_for_the_plate():
+    plate = DotPlate(rows=4, cols=3, pitch_mm=6.0, dot_diameter_mm=4.0)
+    grid = np.stack(np.meshgrid(np.arange(8) * 15.0, np.arange(6) * 15.0, indexing="ij"), axis=-1).reshape(-1, 2)
+    rows, cols = np.meshgrid(np.arange(4), np.arange(3), indexing="ij")
+    every_other = (2 * rows * 6 + 2 * cols).ravel()  # rows 0, 2, 4, 6 and cols 0, 2, 4 of the 8 × 6 grid
+    adjacent = (rows * 6 + cols).ravel()
+    assert skips_candidates(grid, every_other, plate)
+    assert not skips_candidates(grid, adjacent, plate)
+    assert not skips_candidates(grid[adjacent], np.arange(12), plate)  # the plate's 12 dots alone

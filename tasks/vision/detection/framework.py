@@ -388,8 +388,9 @@ def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotP
     diameter of their size: a candidate at 0.6 of its dot is 2.5 of its own sizes from its neighbours
     at a pitch of 1.5 diameters, beyond that. Scaled, the lattice links them and the rim fits start
     from the dot's size; every test of the window (its completeness and uniqueness, the strays, the
-    parallelograms, the rim fits) is the same. Bands in their order, then the offsets, then the factors
-    from the smallest."""
+    parallelograms, the rim fits) is the same, and a window that steps over candidates (every other dot
+    of a larger grid, :func:`skips_candidates`) is not taken. Bands in their order, then the offsets,
+    then the factors from the smallest."""
     for a, band in searched:
         if a.levels is None or a.image is None:
             continue
@@ -407,9 +408,22 @@ def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotP
                 again = ordered_attempt(a.image, grown, levels, plate, a.factor, tm,
                                         expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
                                         expected_centres_px=None)
-                if again.ok:
+                if again.ok and not skips_candidates(c.centres, again.order.index, plate):
                     return again
     return None
+
+
+def skips_candidates(centres: np.ndarray, index: np.ndarray, plate: DotPlate) -> bool:
+    """True when a candidate (``centres`` (K, 2) px) lies within a quarter of a step of the midpoint
+    between two neighbouring dots of the window (``index`` (rows*cols,) into ``centres``): the window
+    steps over dots, a sub-lattice of a larger grid (every other dot of a grid looks like a grid of dots
+    shrunk by blur to half their spacing's share), not the plate."""
+    window = centres[index].reshape(plate.rows, plate.cols, 2)
+    pairs = [(window[:, 1:], window[:, :-1]), (window[1:, :], window[:-1, :])]
+    mids = np.concatenate([((p + q) / 2).reshape(-1, 2) for p, q in pairs])
+    steps = np.concatenate([np.linalg.norm(p - q, axis=-1).ravel() for p, q in pairs])
+    nearest = np.linalg.norm(mids[:, None, :] - centres[None, :, :], axis=2).min(axis=1)
+    return bool((nearest < 0.25 * steps).any())
 
 
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False

@@ -8,6 +8,7 @@
     .venv/bin/python bench/bench_stress.py --random 20 --garden phone   # garden photographs (garden_stress)
     .venv/bin/python bench/bench_stress.py --hand-fit      # centres against the truth and a hand-fit-like rim ellipse
     .venv/bin/python bench/bench_stress.py --envelope 8,12,20,50,150,400 --tilts 0,30,50   # the issue's envelope (RRHT)
+    .venv/bin/python bench/bench_stress.py --blur-sweep 10,13,16 --blurs 1,2,3 --tilts 0,40   # neighbour model off / on
 
 Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
 then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
@@ -62,6 +63,8 @@ from tasks.simulation.detector_stress import (
 )
 from tasks.simulation.garden_stress import GARDEN_REGIMES, random_garden_case, render_garden_case
 from tasks.vision.detection import detect_grid
+from tasks.vision.detection.framework import FrameworkParams, detect_rrht
+from tasks.vision.detection.subpixel import SubpixelParams
 
 DETECTORS = ("rrht", "blob", "hough", "cv2", "cv2+clustering")
 
@@ -197,6 +200,36 @@ def envelope_run(dot_sizes: list[float], tilts: list[float], size: str | None, d
                       f"{verdict:7s} {ms:6.0f} ms  {what}", flush=True)
 
 
+def blur_sweep_run(dot_sizes: list[float], blurs: list[float], tilts: list[float], scene: bool) -> None:
+    """RRHT's centre error (median / worst px against the true centres, up to the grid's symmetry) with
+    the rim fits' neighbour model off and on (``SubpixelParams.neighbour_iterations`` 0 and its
+    default), same image, on 640 × 480 renders of each dot size (px) × extra blur σ (px) × tilt (deg)
+    × polarity: a plain sheet (even light), or with ``scene`` the envelope's (clutter, paper texture, a
+    shadow edge, uneven light, colour, JPEG 80)."""
+    on = SubpixelParams().neighbour_iterations
+    for d in dot_sizes:
+        for blur in blurs:
+            for tilt in tilts:
+                for dark in (True, False):
+                    extra = dict(clutter=30, texture=True, shadow=0.5, gradient=0.8, vignetting=0.3, colour=True,
+                                 jpeg=80) if scene else dict(gradient=0.0, vignetting=0.0)
+                    case = StressCase(f"blur-{d:g}px-{blur:g}", 640, 480, d, tilt_deg=tilt, tilt_azimuth_deg=37.0,
+                                      spin_deg=20.0, dark_dots=dark, seed=1000, defocus_px=blur, **extra)
+                    image, truth = render_stress_case(case)
+                    plate = replace(case.plate, dark_dots=dark)
+                    cells = []
+                    for iterations in (0, on):
+                        det = detect_rrht(image, plate, params=FrameworkParams(
+                            subpixel=SubpixelParams(neighbour_iterations=iterations)))
+                        if det.ok:
+                            e = errors_up_to_symmetry(plate, det.centres, truth)
+                            cells.append(f"{np.median(e):.3f} / {e.max():.3f}")
+                        else:
+                            cells.append("refused")
+                    print(f"{d:4g} px  blur {blur:g}  tilt {tilt:2g}  {'dark ' if dark else 'light'}  "
+                          f"off {cells[0]:>15s}  on {cells[1]:>15s}", flush=True)
+
+
 def hand_fit_run(cases) -> None:
     """Per case: RRHT's perspective-corrected ``centres`` and its ``ellipse_centres`` against the true
     projected dot centres and against the rim ellipse of each dot in the image
@@ -241,10 +274,18 @@ def main() -> None:
     ap.add_argument("--size", help="with --envelope: image size WxH instead of one by dot size")
     ap.add_argument("--defocus", type=float, default=0.0, help="with --envelope: extra blur σ px")
     ap.add_argument("--k1", type=float, default=0.0, help="with --envelope: radial distortion (−0.35: fisheye)")
+    ap.add_argument("--blur-sweep", help="dot sizes px, comma-separated: centre errors with the rim fits' neighbour "
+                                         "model off and on (blur_sweep_run)")
+    ap.add_argument("--blurs", default="1,2,3", help="with --blur-sweep: extra blur σ px")
+    ap.add_argument("--scene", action="store_true", help="with --blur-sweep: the envelope's scene, not a plain sheet")
     args = ap.parse_args()
     if args.envelope:
         envelope_run([float(x) for x in args.envelope.split(",")], [float(x) for x in args.tilts.split(",")],
                      args.size, args.defocus, args.k1)
+        return
+    if args.blur_sweep:
+        blur_sweep_run([float(x) for x in args.blur_sweep.split(",")], [float(x) for x in args.blurs.split(",")],
+                       [float(x) for x in args.tilts.split(",")], args.scene)
         return
     if args.hand_fit:
         hand_fit_run([c for c in STRESS_CASES if not args.case or c.name in args.case])

@@ -18,7 +18,10 @@ look like a filled dot on a clear ring of plate
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,
 two neighbouring bands' candidates are ordered together, then the most plate-like band's lattice
 (:meth:`CoarseAttempt.plate_likeness`) is looked at again where its best window lacks one or two
-dots inside the image (:mod:`tasks.vision.detection.completion`). A view without exactly one
+dots inside the image (:mod:`tasks.vision.detection.completion`); before that, for dots blurred as
+wide as the gap between them, each band's candidates with its faint regions and their sizes scaled
+for the blur's shrinking (:func:`shrunk_by_blur`). A dot whose rim fit fails is fitted again from a
+well-fitted neighbour's ellipse (:func:`refit_from_neighbours`). A view without exactly one
 complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`,
 :mod:`tasks.vision.detection.lattice_reason`), the most plate-like band's: a wrong labelling is
 worse than none.
@@ -35,7 +38,7 @@ Units: px of the input image unless a name says otherwise; frames as in :mod:`ta
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import pairwise
 
 import numpy as np
@@ -52,7 +55,7 @@ from tasks.vision.detection.perspective import corrected_centres, fit_homography
 from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
 from tasks.vision.detection.result import GridDetection
 from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
-from tasks.vision.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
+from tasks.vision.detection.subpixel import EllipseFits, SubpixelParams, refine_ellipses, rim_reach_px
 from tasks.vision.detection.verify import dot_appearance
 
 
@@ -365,6 +368,66 @@ def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams,
     return again if again.ok else None
 
 
+BLUR_SHRINK = (1.0, 1.4, 1.8)
+"""Factors by which a blur as wide as the gap between the dots can shrink their candidates (the Hough
+rim and the region's core of an 8–16 px dot under a blur of σ ≈ 2 px are 0.5–0.9 of the dot): the
+candidates' sizes are scaled by each in turn when no band gives the grid (:func:`shrunk_by_blur`)."""
+FAINT_REGION_OFFSETS = (0.04, 0.02)
+"""Region thresholds (fractions of the image's grey range below the local mean,
+:func:`tasks.vision.detection.blobs.contour_candidates`) for faint dots: under such a blur the dots'
+cores are only a few per cent of a busy image's range darker than the mean around them."""
+
+
+def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotPlate, p: FrameworkParams, tm: dict, *,
+                   expected_rotation_deg: float | None, mirrored: bool) -> CoarseAttempt | None:
+    """The grid from one band's candidates (``searched``: each band's attempt and its search) with the
+    faint regions of its coarse image added (:data:`FAINT_REGION_OFFSETS`, each passing the candidates'
+    test) and their sizes scaled by a factor of :data:`BLUR_SHRINK`, or None when none gives it.
+
+    A blur as wide as the gap between the dots (σ ≈ 2 px on 8–16 px dots 4–8 px apart) fills the gap:
+    few dots keep a rim for the Hough search or a core below the regions' usual threshold, and what is
+    found of them is 0.5–0.9 of the dot. The lattice links dots whose spacing is at most 1.35 × pitch /
+    diameter of their size: a candidate at 0.6 of its dot is 2.5 of its own sizes from its neighbours
+    at a pitch of 1.5 diameters, beyond that. Scaled, the lattice links them and the rim fits start
+    from the dot's size; every test of the window (its completeness and uniqueness, the strays, the
+    parallelograms, the rim fits) is the same, and a window that steps over candidates (every other dot
+    of a larger grid, :func:`skips_candidates`) is not taken. Bands in their order, then the offsets,
+    then the factors from the smallest."""
+    for a, band in searched:
+        if a.levels is None or a.image is None:
+            continue
+        for offset in FAINT_REGION_OFFSETS:
+            t0 = time.perf_counter()
+            regions = contour_candidates(a.image, plate.dark_dots, band.d_min / a.factor, band.d_max / a.factor, offset)
+            faint, faint_levels = verified(a.image, regions, plate.dark_dots, p)
+            c, added = merge_candidates(a.circles, faint)
+            levels = np.concatenate([a.levels, faint_levels[added]])
+            tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t0
+            if len(c) < 4:
+                continue
+            for g in BLUR_SHRINK:
+                grown = CoarseCircles(c.centres, c.axes * g, c.theta, c.votes, c.rim_ratio)
+                again = ordered_attempt(a.image, grown, levels, plate, a.factor, tm,
+                                        expected_rotation_deg=expected_rotation_deg, mirrored=mirrored,
+                                        expected_centres_px=None)
+                if again.ok and not skips_candidates(c.centres, again.order.index, plate):
+                    return again
+    return None
+
+
+def skips_candidates(centres: np.ndarray, index: np.ndarray, plate: DotPlate) -> bool:
+    """True when a candidate (``centres`` (K, 2) px) lies within a quarter of a step of the midpoint
+    between two neighbouring dots of the window (``index`` (rows*cols,) into ``centres``): the window
+    steps over dots, a sub-lattice of a larger grid (every other dot of a grid looks like a grid of dots
+    shrunk by blur to half their spacing's share), not the plate."""
+    window = centres[index].reshape(plate.rows, plate.cols, 2)
+    pairs = [(window[:, 1:], window[:, :-1]), (window[1:, :], window[:-1, :])]
+    mids = np.concatenate([((p + q) / 2).reshape(-1, 2) for p, q in pairs])
+    steps = np.concatenate([np.linalg.norm(p - q, axis=-1).ravel() for p, q in pairs])
+    nearest = np.linalg.norm(mids[:, None, :] - centres[None, :, :], axis=2).min(axis=1)
+    return bool((nearest < 0.25 * steps).any())
+
+
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
                      ) -> tuple[CoarseCircles, np.ndarray]:
     """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
@@ -401,6 +464,53 @@ def small_dot_grid(band: BandSearch, finer: BandSearch) -> CoarseAttempt | None:
     axes = found.circles.axes[idx]
     d_px = 2.0 * np.sqrt(axes[:, 0] * axes[:, 1]) * found.factor
     return found if float(np.median(d_px)) < band.d_min else None
+
+
+def failed_fits(fits: EllipseFits, c0: np.ndarray, factor: int, min_support: float) -> np.ndarray:
+    """(K,) bool: rim fits that failed, have less than ``min_support`` of their rays, or moved from
+    their coarse centres ``c0`` (K, 2) px by more than half a minor axis (and 2 coarse px); a dot
+    refitted under a shadow's edge may have been found as its lit part: its coarse centre need only
+    lie inside it."""
+    reach = np.where(fits.shadowed, fits.axes[:, 1], 0.5 * fits.axes[:, 1])
+    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(reach, 2.0 * factor)
+    return ~fits.ok | (fits.support < min_support) | moved
+
+
+FIT_FIELDS = ("centres", "axes", "theta", "residual_rms_px", "support", "edge_sigma_px", "ok", "shadowed")
+REFIT_STARTS = 3  # the nearest dots fitted well whose ellipses a failed dot's refit starts from, in turn
+
+
+def refit_from_neighbours(image: np.ndarray, fits: EllipseFits, c0: np.ndarray, bad: np.ndarray, dark_dots: bool,
+                          gap_ratio: float, factor: int, p: FrameworkParams, tm: dict) -> None:
+    """Fit the ``bad`` dots' rims again (in place in ``fits``) from their coarse centres ``c0`` (K, 2) px
+    with the semi-axes and angle of a dot fitted well: the nearest, then the next (up to
+    :data:`REFIT_STARTS`); from each, the rim search of pass 1 first, then pass 2 straight from its
+    ellipse and edge blur.
+
+    Under a blur as wide as the gap between the dots a candidate's coarse circle can be a fraction of
+    its dot, and a rim search started from it locks on to the wrong edge (a neighbour's blurred rim);
+    the plate's dots are alike, so a fitted neighbour's ellipse is the better start. Only dots that
+    failed are fitted again: a grid whose fits all pass is not touched."""
+    good = np.flatnonzero(~bad)
+    # the neighbour model needs every dot's fit: a subset's dots would model only each other
+    sub = replace(p.subpixel, neighbour_iterations=0)
+    for rank in range(min(REFIT_STARTS, len(good))):
+        k = np.flatnonzero(bad)
+        dist = np.linalg.norm(c0[k, None, :] - fits.centres[None, good, :], axis=2)
+        near = good[np.argsort(dist, axis=1, kind="stable")[:, rank]]
+        for blur in (None, fits.edge_sigma_px[near]):
+            again = refine_ellipses(image, c0[k], fits.axes[near], fits.theta[near], dark_dots, gap_ratio, factor,
+                                    sub, seed=p.seed, timings=tm, blur_px=blur)
+            now = ~failed_fits(again, c0[k], factor, p.min_support)
+            for name in FIT_FIELDS:
+                getattr(fits, name)[k[now]] = getattr(again, name)[now]
+            bad[k[now]] = False
+            k, near = k[~now], near[~now]
+            if not len(k):
+                return
+    if bad.any():  # still failed: the last attempt's fits, for the reason given
+        for name in FIT_FIELDS:
+            getattr(fits, name)[k] = getattr(again, name)[~now]
 
 
 def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: float | None = None,
@@ -447,6 +557,10 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = joined if joined is not None else attempt
     if not attempt.ok and expected_centres_px is None:
+        searched = list(zip(attempts, bands, strict=False))  # a band after the one that found a grid is not searched
+        blurred = shrunk_by_blur(searched, plate, p, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
+        attempt = blurred if blurred is not None else attempt
+    if not attempt.ok and expected_centres_px is None:
         completed = complete_window(attempt, plate, p, tm, expected_rotation_deg=expected_rotation_deg,
                                     mirrored=mirrored)
         attempt = completed if completed is not None else attempt
@@ -471,11 +585,10 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     c0 = coarse_to_full(circles.centres[idx], factor)
     fits = refine_ellipses(image, c0, circles.axes[idx] * factor, circles.theta[idx], plate.dark_dots,
                            gap_ratio, factor, p.subpixel, seed=p.seed, timings=tm)
-    bad = ~fits.ok | (fits.support < p.min_support)
-    # a dot cut by a shadow's edge may have been found as its lit part: its coarse centre need only lie inside it
-    reach = np.where(fits.shadowed, fits.axes[:, 1], 0.5 * fits.axes[:, 1])
-    moved = np.linalg.norm(fits.centres - c0, axis=1) > np.maximum(reach, 2.0 * factor)
-    bad |= moved
+    bad = failed_fits(fits, c0, factor, p.min_support)
+    if bad.any() and (~bad).sum() >= 3:
+        refit_from_neighbours(image, fits, c0, bad.copy(), plate.dark_dots, gap_ratio, factor, p, tm)
+        bad = failed_fits(fits, c0, factor, p.min_support)
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
         r, c = rc[found][k]

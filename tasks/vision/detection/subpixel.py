@@ -27,6 +27,9 @@ contours:
   (centres 0.5–9 px off on renders). Dots lit unevenly or with a rough rim fit are fitted again on
   a log scale, where the shadow's edge is a smaller step than the rim on either side of it
   (:func:`lit_spread`, :func:`shadow_suspects`, :func:`log_levels`).
+* neighbours: where a dot's rays reach a neighbour's blurred rim (a blur as wide as the gap between
+  the dots), the neighbours' rims are modelled from their fits and taken out of the profiles, and
+  the dot is fitted again (:mod:`tasks.vision.detection.neighbour_rims`).
 
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
@@ -53,6 +56,7 @@ from tasks.vision.detection.conics import (
     ransac_samples,
 )
 from tasks.vision.detection.edge_fit import EdgeFitParams, fit_dot_edges
+from tasks.vision.detection.neighbour_rims import DotRims, neighbour_shift, within_reach
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.stats import masked_median
@@ -85,6 +89,10 @@ class SubpixelParams:
     refine_bias_px: float = 0.002  # … repeated while shift·(σ/b)² of a dot exceeds this
     blur_curvature_correction: bool = True
     flat_field: bool = True  # divide the profiles by the image's gain field (see module docstring)
+    # neighbours: dots whose rays meet a neighbour's blurred rim, by more than neighbour_min_shift of their
+    # contrast, are fitted again (up to neighbour_iterations times) with it taken out (neighbour_rims)
+    neighbour_iterations: int = 2
+    neighbour_min_shift: float = 0.02
     pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.vision.detection.edge_fit)
     edge_fit: EdgeFitParams = field(default_factory=EdgeFitParams)
     # dots whose rays' bright ends differ by more than this in ln grey level (lit_spread; a shadow at
@@ -392,17 +400,18 @@ def _pass1(prof, t, inside, band, centres, axes, theta, samples, *, ang, sign, p
 
 def _step_fits(prof, t, te, i_in, i_out, sigma, contrast, med_c, inside, *, ang, p, free_slope: bool):
     """The two step fits of pass 2 (σ free, then σ from the per-dot blur model), optionally with a
-    sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable) (K, R)."""
+    sloped dot level (:func:`step_fit`): (t_e, converged, s, s² of the blur model, usable, fitted levels
+    inside and outside the rim) (K, R)."""
     te, s, conv, lev_in, lev_out, _ = step_fit(prof, t, te, i_in, i_out, sigma, p.erf_iterations,
                                                free_slope=free_slope)
     usable = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
     s2 = blur_model(s, usable, ang)
     if p.shared_blur_iterations:
         # refit with σ from the smooth per-dot model: t_e no longer trades off against a noisy s
-        te, _, conv, _, _, _ = step_fit(prof, t, te, lev_in, lev_out, sigma,
-                                        p.shared_blur_iterations + int(free_slope) * p.erf_iterations,
-                                        fixed_sigma=np.sqrt(s2), free_slope=free_slope)
-    return te, conv, s, s2, usable
+        te, _, conv, lev_in, lev_out, _ = step_fit(prof, t, te, lev_in, lev_out, sigma,
+                                                   p.shared_blur_iterations + int(free_slope) * p.erf_iterations,
+                                                   fixed_sigma=np.sqrt(s2), free_slope=free_slope)
+    return te, conv, s, s2, usable, lev_in, lev_out
 
 
 def shading(prof, t, te, s, ok, ang, contrast, minor_axes) -> np.ndarray:
@@ -422,6 +431,14 @@ def shading(prof, t, te, s, ok, ang, contrast, minor_axes) -> np.ndarray:
     return np.hypot(grad[:, 0], grad[:, 1]) * minor_axes / np.where(np.isfinite(contrast), contrast, np.inf)
 
 
+def _window_half_widths(sigma, axs, gap_ratio, lv, p):
+    """(K,) px: the pass-2 windows' half-widths round the rim, ±(k σ + pad) (see :func:`_pass2_profiles`)."""
+    ksig = p.window_sigmas + (p.window_sigmas_blurry - p.window_sigmas) * np.clip(sigma - 1.0, 0.0, 1.0)
+    half_w = ksig * sigma + p.window_pad_px * lv  # (K,)
+    half_w = np.minimum(half_w, np.maximum(1.0 * axs[:, 1], 2.0 * lv))
+    return np.minimum(half_w, np.maximum(1.6 * gap_ratio * axs[:, 1], 2.0 * lv))
+
+
 def _pass2_profiles(crop, cen, axs, ths, sigma, gap_ratio, p):
     """Pass-2 rays of K dots: (grey levels (K, R, T), t (K, R, T) px along the rays, samples inside
     the image (K, R, T), ray angles (R,), window half-widths (K,) px, window centres (K, R) px).
@@ -433,10 +450,7 @@ def _pass2_profiles(crop, cen, axs, ths, sigma, gap_ratio, p):
     # window: ±(k σ + pad); k grows from window_sigmas (sharp rims, where extra flat samples only
     # add interpolation artefacts) to window_sigmas_blurry for σ ≥ 2 px (blurry rims, whose
     # tails are not Gaussian and need the wider view)
-    ksig = p.window_sigmas + (p.window_sigmas_blurry - p.window_sigmas) * np.clip(sigma - 1.0, 0.0, 1.0)
-    half_w = ksig * sigma + p.window_pad_px * lv  # (K,)
-    half_w = np.minimum(half_w, np.maximum(1.0 * axs[:, 1], 2.0 * lv))
-    half_w = np.minimum(half_w, np.maximum(1.6 * gap_ratio * axs[:, 1], 2.0 * lv))
+    half_w = _window_half_widths(sigma, axs, gap_ratio, lv, p)
     n2 = int(np.ceil(2 * half_w.max() / lv)) + 1
     u2 = np.linspace(-1.0, 1.0, n2)
     rho = ellipse_radius_along(cen, axs, ths, ang)  # (K, R)
@@ -445,11 +459,16 @@ def _pass2_profiles(crop, cen, axs, ths, sigma, gap_ratio, p):
     return prof, t, inside, ang, half_w, rho
 
 
-def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang, gain, p):
+def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, shift=None, *, sign, ang, gain, p):
     """Precise rim points of K dots from their pass-2 rays (:func:`_pass2_profiles`): (x, y,
-    valid (K, R), s (K, R)). gain: the image's gain field (used with ``p.flat_field``)."""
+    valid (K, R), s (K, R), median fitted grey level inside and outside the rim over the valid rays
+    (K,)). gain: the image's gain field (used with ``p.flat_field``); shift: (K, R, T) grey levels the
+    neighbours' blurred rims add to the (flattened) profiles, taken out before the fits
+    (:func:`tasks.vision.detection.neighbour_rims.neighbour_shift`)."""
     if p.flat_field:
         prof = flatten_profiles(prof, t, cen, ang, gain)
+    if shift is not None:
+        prof = prof - shift
     n2 = t.shape[2]
     ne = max(2, n2 // 6)
     i_in = prof[..., :ne].mean(axis=2)
@@ -461,15 +480,16 @@ def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang
     g = 1.0 - np.clip((prof - i_in[..., None]) / span[..., None], -0.25, 1.25)
     dts = (2 * half_w / (n2 - 1))[:, None]
     te = t[..., 0] + (g[..., 1:] + g[..., :-1]).sum(axis=2) * 0.5 * dts
-    te, conv, s, s2, usable = over_dots_compiled(_step_fits, len(te), prof, t, te, i_in, i_out, sigma, contrast, med_c,
-                                                 inside, ang=ang, p=p, free_slope=False)
+    te, conv, s, s2, usable, lev_in, lev_out = over_dots_compiled(_step_fits, len(te), prof, t, te, i_in, i_out, sigma,
+                                                                  contrast, med_c, inside, ang=ang, p=p,
+                                                                  free_slope=False)
     if p.inner_slope:  # dots darker on one side: refit them with a sloped inside, which would move t_e
         shaded = shading(prof, t, te, np.sqrt(s2), usable, ang, med_c, axs[:, 1]) > p.min_shading
         if shaded.any():
             k = np.flatnonzero(shaded)
             fits = _step_fits(prof[k], t[k], te[k], i_in[k], i_out[k], sigma[k], contrast[k], med_c[k], inside[k],
                               ang=ang, p=p, free_slope=True)
-            for full, part in zip((te, conv, s, s2, usable), fits, strict=True):
+            for full, part in zip((te, conv, s, s2, usable, lev_in, lev_out), fits, strict=True):
                 full[k] = part
     valid = inside.all(axis=2) & conv & (contrast > 0.5 * med_c[:, None])
     valid &= np.abs(te - rho) < half_w[:, None] - np.minimum(np.sqrt(s2), half_w[:, None] / 2)
@@ -477,7 +497,7 @@ def _pass2_rims(prof, t, inside, cen, axs, ths, sigma, half_w, rho, *, sign, ang
         te = te + curvature_correction(s2, ang, axs, ths)
     x = cen[:, 0:1] + np.cos(ang)[None, :] * te
     y = cen[:, 1:2] + np.sin(ang)[None, :] * te
-    return x, y, valid, s
+    return x, y, valid, s, masked_median(lev_in, valid), masked_median(lev_out, valid)
 
 
 def _rim_ellipses(x, y, valid, s, c0, a0, *, n_rays):
@@ -537,9 +557,11 @@ def log_levels(prof: np.ndarray) -> np.ndarray:
     return np.log(np.maximum(prof, 1.0)).astype(np.float32)
 
 
-def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, rng, *, log_scale=False):
-    """Pass 1 and the pass-2 repetitions of :func:`refine_ellipses` on K dots (see the module
-    docstring); log_scale: every profile through :func:`log_levels`, without the gain field.
+def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, rng, *, log_scale=False,
+                blur_px=None):
+    """Pass 1, the pass-2 repetitions and the neighbours' refits of :func:`refine_ellipses` on K dots
+    (see the module docstring); log_scale: every profile through :func:`log_levels`, without the gain
+    field or the neighbours' rims (modelled in grey levels); blur_px: as :func:`refine_ellipses`'s.
     Returns (centres (K, 2), semi-axes (K, 2), angles (K,), fitted (K,), residual RMS (K,) px,
     support (K,), median rim blur (K,) px, :func:`lit_spread` of the first pass 2 (K,), seconds
     spent fitting ellipses)."""
@@ -549,12 +571,15 @@ def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, 
     reach = float(out_lim.max()) + 4.0 * coarse_factor
     crop1 = crop_rois(image, centres, reach)
     t0 = clock()
-    samples = ransac_samples(k, p.pass1_rays, p.ransac_hypotheses, rng)
-    prof1, t1, inside1, ang1, band1 = _pass1_profiles(crop1, centres, axes, theta, out_lim, coarse_factor, p)
-    if log_scale:
-        prof1 = log_levels(prof1)
-    cen, axs, ths, sigma = over_dots(_pass1, k, prof1, t1, inside1, band1, centres, axes, theta, samples, ang=ang1,
-                                     sign=sign, p=p)
+    if blur_px is None:
+        samples = ransac_samples(k, p.pass1_rays, p.ransac_hypotheses, rng)
+        prof1, t1, inside1, ang1, band1 = _pass1_profiles(crop1, centres, axes, theta, out_lim, coarse_factor, p)
+        if log_scale:
+            prof1 = log_levels(prof1)
+        cen, axs, ths, sigma = over_dots(_pass1, k, prof1, t1, inside1, band1, centres, axes, theta, samples,
+                                         ang=ang1, sign=sign, p=p)
+    else:
+        cen, axs, ths, sigma = centres, axes, theta, np.clip(np.asarray(blur_px, dtype=float), 0.5, None)
     t_fit = clock() - t0
     level = int(np.clip(np.floor(np.median(sigma) / p.sigma_per_level), 1, p.max_level))
     crop2 = crop1 if level == 1 else crop_rois(image, centres, reach, level)
@@ -566,6 +591,7 @@ def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, 
     spread = np.zeros(k)
     todo = np.arange(k)
     gain = GainField.flat() if log_scale else None
+    lev_in, lev_out = np.full(k, np.nan), np.full(k, np.nan)
     for repeat in range(p.max_refine):
         c0, a0, h0, s0 = cen[todo], axs[todo], ths[todo], sigma[todo]
         prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, c0, a0, h0, s0, gap_ratio, p)
@@ -575,8 +601,8 @@ def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, 
             prof = log_levels(prof)
         if p.flat_field and gain is None:  # fitted on the first pass, which sees every dot
             gain = fit_gain_field(prof, t, inside.all(axis=2), c0, ang)
-        x, y, valid, s = over_dots(_pass2_rims, len(todo), prof, t, inside, c0, a0, h0, s0, half_w, rho,
-                                   sign=sign, ang=ang, gain=gain, p=p)
+        x, y, valid, s, lev_in[todo], lev_out[todo] = over_dots(_pass2_rims, len(todo), prof, t, inside, c0, a0, h0,
+                                                                s0, half_w, rho, sign=sign, ang=ang, gain=gain, p=p)
         t0 = clock()
         okp, cn, an, tn, rms_p, s_med_p, support_p = over_dots(_rim_ellipses, len(todo), x, y, valid, s, c0, a0,
                                                                n_rays=len(ang))
@@ -591,6 +617,32 @@ def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, 
         todo = todo[okp & (oblique > p.refine_bias_px)]
         if len(todo) == 0:
             break
+    if p.neighbour_iterations and not log_scale and ok.sum() >= 2:
+        t0 = clock()
+        for _ in range(p.neighbour_iterations):
+            # a dot whose fit failed is no model of its rim: left out as a neighbour (NaN level)
+            dots = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
+            near = np.flatnonzero(ok & within_reach(dots, _window_half_widths(sigma, axs, gap_ratio, crop2.level, p)))
+            if not len(near):
+                break
+            prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, cen[near], axs[near], ths[near], sigma[near],
+                                                                gap_ratio, p)
+            shift = neighbour_shift(dots, near, cen[near], ang, t)
+            reached = np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in)[near]
+            if not reached.any():
+                break
+            x, y, valid, s, li, lo = _pass2_rims(prof[reached], t[reached], inside[reached], cen[near[reached]],
+                                                 axs[near[reached]], ths[near[reached]], sigma[near[reached]],
+                                                 half_w[reached], rho[reached], shift[reached], sign=sign, ang=ang,
+                                                 gain=gain, p=p)
+            todo = near[reached]
+            okp, cn, an, tn, rms_p, s_med_p, support_p = _rim_ellipses(x, y, valid, s, cen[todo], axs[todo],
+                                                                       n_rays=len(ang))
+            upd = todo[okp]
+            cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
+            rms[upd], s_med[upd], support[upd], lev_in[upd], lev_out[upd] = (
+                rms_p[okp], s_med_p[okp], support_p[okp], li[okp], lo[okp])
+        t_fit += clock() - t0
     return cen, axs, ths, ok, rms, support, s_med, spread, t_fit
 
 
@@ -626,13 +678,15 @@ def shadow_starts(axes: np.ndarray, theta: np.ndarray, fitted_axes: np.ndarray, 
 def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, theta: np.ndarray,
                     dark_dots: bool, gap_ratio: float, coarse_factor: int,
                     params: SubpixelParams | None = None, seed: int = 0,
-                    timings: dict | None = None) -> EllipseFits:
+                    timings: dict | None = None, blur_px: np.ndarray | None = None) -> EllipseFits:
     """Refine coarse ellipses (already mapped to full-size px) to sub-pixel ellipse fits.
 
     gap_ratio: (pitch − diameter) / diameter of the plate, bounding how far outside the rim a ray
     may look before it reaches the neighbouring dot. coarse_factor: downsampling factor of the
     coarse search (sets the pass-1 search band). timings: optional dict that receives the seconds
-    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting".
+    spent in "rim_sampling" (profiles and rim location) and "ellipse_fitting". blur_px: (K,) edge blur σ
+    px of ellipses known to be close already (a fitted neighbour's): pass 1 is then skipped and pass 2
+    starts from the ellipses given.
 
     Dots that may have a cast shadow's edge across them (:func:`shadow_suspects`) are fitted again
     on a log scale (:func:`log_levels`) from their coarse ellipses (:func:`shadow_starts`); a dot
@@ -646,7 +700,7 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     t_begin = clock()
     sign = 1.0 if dark_dots else -1.0
     cen, axs, ths, ok, rms, support, s_med, spread, t_fit = _rim_passes(image, centres, axes, theta, sign, gap_ratio,
-                                                                        coarse_factor, p, rng)
+                                                                        coarse_factor, p, rng, blur_px=blur_px)
     shadowed = np.zeros(len(centres), bool)
     suspect = shadow_suspects(spread, rms, ok, p) if p.shadow_refit else shadowed
     if suspect.any():

@@ -18,7 +18,7 @@ from scipy.special import ndtr
 
 from tasks.vision.detection import blobs, conics, rrht, step_kernels, subpixel
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
-from tasks.vision.detection.region_kernels import contour_areas
+from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas
 
 
 def _solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -242,6 +242,28 @@ def test_contour_areas_are_opencvs_contour_and_hull_areas_to_every_bit():
     area, _ = contour_areas(points, starts, lens, a_min, a_max)
     inside = (want_area >= a_min) & (want_area <= a_max)
     assert np.array_equal(np.isfinite(area[big]), inside)
+
+
+def test_convex_contour_areas_decide_as_the_hull_area_does():
+    rng = np.random.default_rng(12)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (480, 640)).astype(np.uint8), (0, 0), 1.5)
+    for u, v, a, b, ang in zip(*rng.uniform((0, 0, 2, 2, 0), (640, 480, 12, 12, 180), (60, 5)).T, strict=True):
+        cv2.ellipse(img, (int(u), int(v)), (int(a), int(b)), ang, 0, 360, 0, -1)  # convex regions
+    cv2.rectangle(img, (10, 10), (30, 22), 0, -1)  # a box: convex by the bounding-box bound
+    counts = np.zeros(2, int)
+    for level in (90, 120, 150):
+        contours, _ = cv2.findContours((img < level).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        lens = np.array([len(c) for c in contours])
+        starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+        points = np.concatenate(contours).reshape(-1, 2).astype(float)
+        for a_min, a_max, c in ((1.0, np.inf, 0.9), (10.0, 400.0, 0.9), (1.0, np.inf, 0.6), (1.0, np.inf, 0.99)):
+            area, hull = contour_areas(points, starts, lens, a_min, a_max)
+            got_area, convex = convex_contour_areas(points, starts, lens, a_min, a_max, c)
+            with np.errstate(invalid="ignore"):
+                want = (hull > 0) & (area / hull >= c)
+            assert got_area.tobytes() == area.tobytes() and np.array_equal(convex, want)
+            counts += want.sum(), np.isfinite(area).sum() - want.sum()
+    assert (counts > 50).all()  # both answers, many times
 
 
 def test_first_of_each_place_keeps_what_the_pass_over_all_earlier_regions_keeps():

@@ -17,6 +17,8 @@ import pytest
 from scipy.special import ndtr
 
 from tasks.vision.detection import blobs, conics, rrht, step_kernels, subpixel
+from tasks.vision.detection.chain_kernels import screen_contours
+from tasks.vision.detection.chaincode import FREEMAN_CODE, chain_codes, filter_edges
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas
 
@@ -264,6 +266,58 @@ def test_convex_contour_areas_decide_as_the_hull_area_does():
             assert got_area.tobytes() == area.tobytes() and np.array_equal(convex, want)
             counts += want.sum(), np.isfinite(area).sum() - want.sum()
     assert (counts > 50).all()  # both answers, many times
+
+
+def _filter_edges_numpy(edges, d_min_px, d_max_px, min_distinct=6, max_code_fraction=0.4, max_aspect=4.0):
+    """chaincode.filter_edges' numpy form: per-point codes, one histogram, the kept contours redrawn."""
+    contours, _ = cv2.findContours(edges, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    lens = np.array([len(c) for c in contours])
+    pts = np.concatenate(contours, axis=0)[:, 0, :].astype(np.int64)
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    w = np.maximum.reduceat(pts[:, 0], starts) - np.minimum.reduceat(pts[:, 0], starts) + 1
+    h = np.maximum.reduceat(pts[:, 1], starts) - np.minimum.reduceat(pts[:, 1], starts) + 1
+    big, small = np.maximum(w, h), np.minimum(w, h)
+    size_ok = (big >= 0.45 * d_min_px) & (big <= 1.3 * d_max_px + 3) & (big <= max_aspect * small + 2)
+    codes = chain_codes(pts, starts, lens)
+    seg = np.repeat(np.arange(len(contours)), lens)
+    good = codes >= 0
+    hist = np.bincount(seg[good] * 8 + codes[good], minlength=8 * len(contours)).reshape(-1, 8)
+    frac = hist.max(axis=1) / np.maximum(hist.sum(axis=1), 1)
+    keep = size_ok & ((hist > 0).sum(axis=1) >= min_distinct) & (frac <= max_code_fraction)
+    out = np.zeros_like(edges)
+    cv2.drawContours(out, [contours[i] for i in np.flatnonzero(keep)], -1, 255, 1)
+    return out & edges, int(keep.sum())
+
+
+def test_filter_edges_keeps_and_draws_what_its_numpy_form_does():
+    rng = np.random.default_rng(13)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (600, 800)).astype(np.uint8), (0, 0), 1.2)
+    for u, v, a, b, ang in zip(*rng.uniform((0, 0, 3, 3, 0), (800, 600, 40, 40, 180), (80, 5)).T, strict=True):
+        cv2.ellipse(img, (int(u), int(v)), (int(a), int(b)), ang, 0, 360, int(u) % 256, -1)
+    edges = cv2.Canny(img, 40, 90)
+    edges[5, 5:40] = 255  # a straight line, and single pixels
+    edges[::97, ::89] = 255
+    for d_min, d_max in ((4.0, 16.0), (6.0, 40.0), (20.0, 90.0)):
+        want, n_kept = _filter_edges_numpy(edges, d_min, d_max)
+        got, stats = filter_edges(edges, d_min, d_max)
+        assert got.tobytes() == want.tobytes() and stats["kept"] == n_kept > 20
+
+
+def test_screen_contours_leaves_a_contour_with_a_jump_to_opencv():
+    ring = cv2.ellipse2Poly((20, 20), (8, 8), 0, 0, 360, 5)[:-1].astype(np.int64)  # steps of several px
+    u, v = ring[:, 0].copy(), ring[:, 1].copy()
+    out = np.zeros((40, 40), np.uint8)
+    keep, drawn = screen_contours(u, v, np.array([0]), np.array([len(u)]), 3.0, 30.0, 4.0, 6, 0.4, FREEMAN_CODE, out)
+    assert keep.tolist() == [False] and not out.any()  # no unit steps: no codes, refused
+    step = np.array([[0, 0], [1, 0], [2, 0], [2, 1], [2, 2], [1, 2], [0, 2], [0, 1]])  # a 3 × 3 square
+    keep, drawn = screen_contours(step[:, 0].copy(), step[:, 1].copy(), np.array([0]), np.array([8]), 1.0, 30.0,
+                                  4.0, 4, 0.4, FREEMAN_CODE, out)
+    assert keep.tolist() == [True] and drawn.tolist() == [True] and out[:3, :3].sum() == 8 * 255
+    jump = np.concatenate([step, [[5, 5], [1, 1]]])  # the same square with a jump out and back
+    out[:] = 0
+    keep, drawn = screen_contours(jump[:, 0].copy(), jump[:, 1].copy(), np.array([0]), np.array([10]), 1.0, 30.0,
+                                  4.0, 4, 0.4, FREEMAN_CODE, out)
+    assert keep.tolist() == [True] and drawn.tolist() == [False] and not out.any()
 
 
 def test_first_of_each_place_keeps_what_the_pass_over_all_earlier_regions_keeps():

@@ -52,7 +52,8 @@ def filter_edges(edges: np.ndarray, d_min_px: float, d_max_px: float, min_distin
     # the size test on the bounding box, the chain-code histogram and the drawing of the kept contours
     # in one compiled pass (chain_kernels.screen_contours; a contour with a jump is drawn by OpenCV)
     keep, drawn = screen_contours(pts[:, 0].copy(), pts[:, 1].copy(), starts, lens, 0.45 * d_min_px,
-                                  1.3 * d_max_px + 3, float(max_aspect), min_distinct, max_code_fraction, FREEMAN_CODE, out)
+                                  1.3 * d_max_px + 3, float(max_aspect), min_distinct, max_code_fraction,
+                                  FREEMAN_CODE, out)
     kept = np.flatnonzero(keep)
     jumps = [contours[i] for i in np.flatnonzero(keep & ~drawn)]
     if jumps:

@@ -19,6 +19,7 @@ from scipy.special import ndtr
 from tasks.vision.detection import blobs, conics, rrht, step_kernels, subpixel
 from tasks.vision.detection.chain_kernels import screen_contours
 from tasks.vision.detection.chaincode import FREEMAN_CODE, chain_codes, filter_edges
+from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas
 
@@ -318,6 +319,16 @@ def test_screen_contours_leaves_a_contour_with_a_jump_to_opencv():
     keep, drawn = screen_contours(jump[:, 0].copy(), jump[:, 1].copy(), np.array([0]), np.array([10]), 1.0, 30.0,
                                   4.0, 4, 0.4, FREEMAN_CODE, out)
     assert keep.tolist() == [True] and drawn.tolist() == [False] and not out.any()
+
+
+def test_canny_gradients_are_the_two_sobel_derivatives():
+    rng = np.random.default_rng(14)
+    for shape in ((37, 53), (240, 321)):
+        img = cv2.GaussianBlur(rng.integers(0, 256, shape).astype(np.uint8), (0, 0), 1.0)
+        img[: shape[0] // 3] = 255 * (rng.random((shape[0] // 3, shape[1])) < 0.5)  # the steepest steps
+        em = canny_edges(img)
+        assert np.array_equal(em.gx, cv2.Sobel(img, cv2.CV_16S, 1, 0, ksize=3))
+        assert np.array_equal(em.gy, cv2.Sobel(img, cv2.CV_16S, 0, 1, ksize=3))
 
 
 def test_first_of_each_place_keeps_what_the_pass_over_all_earlier_regions_keeps():

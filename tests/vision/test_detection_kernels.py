@@ -22,6 +22,7 @@ from tasks.vision.detection.chaincode import FREEMAN_CODE, chain_codes, filter_e
 from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas
+from tasks.vision.detection.rrht import local_maxima
 
 
 def _solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -329,6 +330,16 @@ def test_canny_gradients_are_the_two_sobel_derivatives():
         em = canny_edges(img)
         assert np.array_equal(em.gx, cv2.Sobel(img, cv2.CV_16S, 1, 0, ksize=3))
         assert np.array_equal(em.gy, cv2.Sobel(img, cv2.CV_16S, 0, 1, ksize=3))
+
+
+def test_local_maxima_are_the_dilation_peaks():
+    rng = np.random.default_rng(15)
+    for shape in ((1, 1), (3, 7), (120, 90)):
+        score = rng.integers(0, 4, shape).astype(np.float32)  # many ties, peaks on the border
+        where = rng.random(shape) < 0.5
+        v, u = local_maxima(score, where)
+        want = np.nonzero(where & (score >= cv2.dilate(score, np.ones((3, 3), np.uint8))))
+        assert np.array_equal(v, want[0]) and np.array_equal(u, want[1])
 
 
 def test_first_of_each_place_keeps_what_the_pass_over_all_earlier_regions_keeps():

@@ -17,8 +17,12 @@ import pytest
 from scipy.special import ndtr
 
 from tasks.vision.detection import blobs, conics, rrht, step_kernels, subpixel
+from tasks.vision.detection.chain_kernels import screen_contours
+from tasks.vision.detection.chaincode import FREEMAN_CODE, chain_codes, filter_edges
+from tasks.vision.detection.edges import canny_edges
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
-from tasks.vision.detection.region_kernels import contour_areas
+from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas
+from tasks.vision.detection.rrht import local_maxima
 
 
 def _solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -242,6 +246,100 @@ def test_contour_areas_are_opencvs_contour_and_hull_areas_to_every_bit():
     area, _ = contour_areas(points, starts, lens, a_min, a_max)
     inside = (want_area >= a_min) & (want_area <= a_max)
     assert np.array_equal(np.isfinite(area[big]), inside)
+
+
+def test_convex_contour_areas_decide_as_the_hull_area_does():
+    rng = np.random.default_rng(12)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (480, 640)).astype(np.uint8), (0, 0), 1.5)
+    for u, v, a, b, ang in zip(*rng.uniform((0, 0, 2, 2, 0), (640, 480, 12, 12, 180), (60, 5)).T, strict=True):
+        cv2.ellipse(img, (int(u), int(v)), (int(a), int(b)), ang, 0, 360, 0, -1)  # convex regions
+    cv2.rectangle(img, (10, 10), (30, 22), 0, -1)  # a box: convex by the bounding-box bound
+    counts = np.zeros(2, int)
+    for level in (90, 120, 150):
+        contours, _ = cv2.findContours((img < level).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        lens = np.array([len(c) for c in contours])
+        starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+        points = np.concatenate(contours).reshape(-1, 2).astype(float)
+        for a_min, a_max, c in ((1.0, np.inf, 0.9), (10.0, 400.0, 0.9), (1.0, np.inf, 0.6), (1.0, np.inf, 0.99)):
+            area, hull = contour_areas(points, starts, lens, a_min, a_max)
+            got_area, convex = convex_contour_areas(points, starts, lens, a_min, a_max, c)
+            with np.errstate(invalid="ignore"):
+                want = (hull > 0) & (area / hull >= c)
+            assert got_area.tobytes() == area.tobytes() and np.array_equal(convex, want)
+            counts += want.sum(), np.isfinite(area).sum() - want.sum()
+    assert (counts > 50).all()  # both answers, many times
+
+
+def _filter_edges_numpy(edges, d_min_px, d_max_px, min_distinct=6, max_code_fraction=0.4, max_aspect=4.0):
+    """chaincode.filter_edges' numpy form: per-point codes, one histogram, the kept contours redrawn."""
+    contours, _ = cv2.findContours(edges, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    lens = np.array([len(c) for c in contours])
+    pts = np.concatenate(contours, axis=0)[:, 0, :].astype(np.int64)
+    starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+    w = np.maximum.reduceat(pts[:, 0], starts) - np.minimum.reduceat(pts[:, 0], starts) + 1
+    h = np.maximum.reduceat(pts[:, 1], starts) - np.minimum.reduceat(pts[:, 1], starts) + 1
+    big, small = np.maximum(w, h), np.minimum(w, h)
+    size_ok = (big >= 0.45 * d_min_px) & (big <= 1.3 * d_max_px + 3) & (big <= max_aspect * small + 2)
+    codes = chain_codes(pts, starts, lens)
+    seg = np.repeat(np.arange(len(contours)), lens)
+    good = codes >= 0
+    hist = np.bincount(seg[good] * 8 + codes[good], minlength=8 * len(contours)).reshape(-1, 8)
+    frac = hist.max(axis=1) / np.maximum(hist.sum(axis=1), 1)
+    keep = size_ok & ((hist > 0).sum(axis=1) >= min_distinct) & (frac <= max_code_fraction)
+    out = np.zeros_like(edges)
+    cv2.drawContours(out, [contours[i] for i in np.flatnonzero(keep)], -1, 255, 1)
+    return out & edges, int(keep.sum())
+
+
+def test_filter_edges_keeps_and_draws_what_its_numpy_form_does():
+    rng = np.random.default_rng(13)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (600, 800)).astype(np.uint8), (0, 0), 1.2)
+    for u, v, a, b, ang in zip(*rng.uniform((0, 0, 3, 3, 0), (800, 600, 40, 40, 180), (80, 5)).T, strict=True):
+        cv2.ellipse(img, (int(u), int(v)), (int(a), int(b)), ang, 0, 360, int(u) % 256, -1)
+    edges = cv2.Canny(img, 40, 90)
+    edges[5, 5:40] = 255  # a straight line, and single pixels
+    edges[::97, ::89] = 255
+    for d_min, d_max in ((4.0, 16.0), (6.0, 40.0), (20.0, 90.0)):
+        want, n_kept = _filter_edges_numpy(edges, d_min, d_max)
+        got, stats = filter_edges(edges, d_min, d_max)
+        assert got.tobytes() == want.tobytes() and stats["kept"] == n_kept > 20
+
+
+def test_screen_contours_leaves_a_contour_with_a_jump_to_opencv():
+    ring = cv2.ellipse2Poly((20, 20), (8, 8), 0, 0, 360, 5)[:-1].astype(np.int64)  # steps of several px
+    u, v = ring[:, 0].copy(), ring[:, 1].copy()
+    out = np.zeros((40, 40), np.uint8)
+    keep, drawn = screen_contours(u, v, np.array([0]), np.array([len(u)]), 3.0, 30.0, 4.0, 6, 0.4, FREEMAN_CODE, out)
+    assert keep.tolist() == [False] and not out.any()  # no unit steps: no codes, refused
+    step = np.array([[0, 0], [1, 0], [2, 0], [2, 1], [2, 2], [1, 2], [0, 2], [0, 1]])  # a 3 × 3 square
+    keep, drawn = screen_contours(step[:, 0].copy(), step[:, 1].copy(), np.array([0]), np.array([8]), 1.0, 30.0,
+                                  4.0, 4, 0.4, FREEMAN_CODE, out)
+    assert keep.tolist() == [True] and drawn.tolist() == [True] and out[:3, :3].sum() == 8 * 255
+    jump = np.concatenate([step, [[5, 5], [1, 1]]])  # the same square with a jump out and back
+    out[:] = 0
+    keep, drawn = screen_contours(jump[:, 0].copy(), jump[:, 1].copy(), np.array([0]), np.array([10]), 1.0, 30.0,
+                                  4.0, 4, 0.4, FREEMAN_CODE, out)
+    assert keep.tolist() == [True] and drawn.tolist() == [False] and not out.any()
+
+
+def test_canny_gradients_are_the_two_sobel_derivatives():
+    rng = np.random.default_rng(14)
+    for shape in ((37, 53), (240, 321)):
+        img = cv2.GaussianBlur(rng.integers(0, 256, shape).astype(np.uint8), (0, 0), 1.0)
+        img[: shape[0] // 3] = 255 * (rng.random((shape[0] // 3, shape[1])) < 0.5)  # the steepest steps
+        em = canny_edges(img)
+        assert np.array_equal(em.gx, cv2.Sobel(img, cv2.CV_16S, 1, 0, ksize=3))
+        assert np.array_equal(em.gy, cv2.Sobel(img, cv2.CV_16S, 0, 1, ksize=3))
+
+
+def test_local_maxima_are_the_dilation_peaks():
+    rng = np.random.default_rng(15)
+    for shape in ((1, 1), (3, 7), (120, 90)):
+        score = rng.integers(0, 4, shape).astype(np.float32)  # many ties, peaks on the border
+        where = rng.random(shape) < 0.5
+        v, u = local_maxima(score, where)
+        want = np.nonzero(where & (score >= cv2.dilate(score, np.ones((3, 3), np.uint8))))
+        assert np.array_equal(v, want[0]) and np.array_equal(u, want[1])
 
 
 def test_first_of_each_place_keeps_what_the_pass_over_all_earlier_regions_keeps():

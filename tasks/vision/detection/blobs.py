@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.vision.detection.parallel import map_kernel
-from tasks.vision.detection.region_kernels import contour_areas
+from tasks.vision.detection.region_kernels import convex_contour_areas
 from tasks.vision.detection.rrht import CoarseCircles
 
 
@@ -43,8 +43,8 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
         threshold -= offset  # in float32, as numpy's `mean - offset`
         mask = cv2.compare(src, threshold, cv2.CMP_LT)  # 255 where darker: findContours takes any non-zero
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        areas, hulls = _areas(contours, a_min, a_max)
-        convex = np.flatnonzero((hulls > 0) & (areas / hulls >= min_convexity))  # NaN (not a dot's size): False
+        areas, convex = _convex_areas(contours, a_min, a_max, min_convexity)
+        convex = np.flatnonzero(convex)
         ellipses = map(cv2.fitEllipse, (contours[i] for i in convex))
         fits = np.array([(cu, cv_, w, h, ang) for (cu, cv_), (w, h), ang in ellipses], dtype=float).reshape(-1, 5)
         w, h, area = fits[:, 2], fits[:, 3], areas[convex]
@@ -84,13 +84,14 @@ def first_of_each_place(centres: np.ndarray, reach: np.ndarray) -> np.ndarray:
     return keep
 
 
-def _areas(contours, a_min: float, a_max: float) -> tuple[np.ndarray, np.ndarray]:
-    """(area, convex hull area) (N,) px² of the N contours, ``cv2.contourArea`` of the contour and of its
-    ``cv2.convexHull`` to every bit, in one compiled pass (:func:`region_kernels.contour_areas`); NaN for
-    contours of fewer than 6 points or an area outside a_min … a_max."""
+def _convex_areas(contours, a_min: float, a_max: float, min_convexity: float) -> tuple[np.ndarray, np.ndarray]:
+    """(area px², convex) (N,) of the N contours: ``cv2.contourArea`` of the contour to every bit (NaN for
+    contours of fewer than 6 points or an area outside a_min … a_max), and whether it is at least
+    ``min_convexity`` of its ``cv2.convexHull``'s, in one compiled pass
+    (:func:`region_kernels.convex_contour_areas`)."""
     if not contours:
-        return np.empty(0), np.empty(0)
+        return np.empty(0), np.empty(0, bool)
     lens = np.fromiter(map(len, contours), np.int64, len(contours))
     starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
     points = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
-    return contour_areas(points, starts, lens, a_min, a_max)
+    return convex_contour_areas(points, starts, lens, a_min, a_max, min_convexity)

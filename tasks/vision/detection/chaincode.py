@@ -13,8 +13,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from tasks.vision.detection.chain_kernels import screen_contours
+
 # code for step (du, dv), indexed [dv + 1, du + 1]; v points down, so code 2 is a step up (−v)
-_CODE = np.array([[3, 2, 1], [4, -1, 0], [5, 6, 7]], dtype=np.int64)
+FREEMAN_CODE = np.array([[3, 2, 1], [4, -1, 0], [5, 6, 7]], dtype=np.int64)
 
 
 def chain_codes(points: np.ndarray, seg_start: np.ndarray, seg_len: np.ndarray) -> np.ndarray:
@@ -30,7 +32,7 @@ def chain_codes(points: np.ndarray, seg_start: np.ndarray, seg_len: np.ndarray) 
     d = points[nxt] - points
     ok = (np.abs(d) <= 1).all(axis=1)
     codes = np.full(points.shape[0], -1, dtype=np.int64)
-    codes[ok] = _CODE[d[ok, 1] + 1, d[ok, 0] + 1]
+    codes[ok] = FREEMAN_CODE[d[ok, 1] + 1, d[ok, 0] + 1]
     return codes
 
 
@@ -46,28 +48,16 @@ def filter_edges(edges: np.ndarray, d_min_px: float, d_max_px: float, min_distin
     lens = np.fromiter((len(c) for c in contours), dtype=np.int64, count=len(contours))
     pts = np.concatenate(contours, axis=0)[:, 0, :].astype(np.int64)
     starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
-    # bounding boxes, per contour (reduceat over the concatenation)
-    umin = np.minimum.reduceat(pts[:, 0], starts)
-    umax = np.maximum.reduceat(pts[:, 0], starts)
-    vmin = np.minimum.reduceat(pts[:, 1], starts)
-    vmax = np.maximum.reduceat(pts[:, 1], starts)
-    w = umax - umin + 1
-    h = vmax - vmin + 1
-    big = np.maximum(w, h)
-    small = np.minimum(w, h)
-    size_ok = (big >= 0.45 * d_min_px) & (big <= 1.3 * d_max_px + 3) & (big <= max_aspect * small + 2)
-    # chain-code direction histogram per contour
-    codes = chain_codes(pts, starts, lens)
-    seg = np.repeat(np.arange(len(contours)), lens)
-    good = codes >= 0
-    hist = np.bincount(seg[good] * 8 + codes[good], minlength=8 * len(contours)).reshape(-1, 8)
-    total = np.maximum(hist.sum(axis=1), 1)
-    distinct = (hist > 0).sum(axis=1)
-    frac = hist.max(axis=1) / total
-    keep = size_ok & (distinct >= min_distinct) & (frac <= max_code_fraction)
     out = np.zeros_like(edges)
-    kept = [contours[i] for i in np.flatnonzero(keep)]
-    if kept:
-        cv2.drawContours(out, kept, -1, 255, 1)
+    # the size test on the bounding box, the chain-code histogram and the drawing of the kept contours
+    # in one compiled pass (chain_kernels.screen_contours; a contour with a jump is drawn by OpenCV)
+    keep, drawn = screen_contours(pts[:, 0].copy(), pts[:, 1].copy(), starts, lens, 0.45 * d_min_px,
+                                  1.3 * d_max_px + 3, float(max_aspect), min_distinct, max_code_fraction,
+                                  FREEMAN_CODE, out)
+    kept = np.flatnonzero(keep)
+    jumps = [contours[i] for i in np.flatnonzero(keep & ~drawn)]
+    if jumps:
+        cv2.drawContours(out, jumps, -1, 255, 1)
+    if len(kept):
         out &= edges
     return out, {"contours": len(contours), "kept": len(kept)}

@@ -200,32 +200,40 @@ class BandSearch:
                  p: FrameworkParams, tm: dict, kw: dict):
         self.image, self.plate, self.factor, self.d_min, self.d_max = image, plate, factor, d_min, d_max
         self.p, self.tm, self.kw = p, tm, kw
-        self._hough: list[CoarseAttempt] | None = None
+        self._hough: list[CoarseAttempt] = []
+        self._n_stretches: int | None = None  # known once the first stretch is searched
+        self._small: np.ndarray | None = None
+
+    def _next_stretch(self) -> None:
+        """Search the band's next grey stretch (the first: 1–99 %; the second, where
+        :func:`tasks.vision.detection.preprocess.keep_small_tails` says the far tails differ: to them)."""
+        t0 = time.perf_counter()
+        if self._small is None:
+            self._small = downsample(self.image, self.factor)
+        small_tails = self._n_stretches is not None
+        pre, stretch = auto_gamma(self._small, self.p.median_ksize, small_tails=small_tails)
+        if self._n_stretches is None:
+            self._n_stretches = 2 if stretch["tails_differ"] else 1
+        self.tm["preprocess"] = self.tm.get("preprocess", 0.0) + time.perf_counter() - t0
+        self._hough.append(hough_attempt(pre, self.plate, self.factor, self.d_min, self.d_max, self.p, self.tm,
+                                         **self.kw))
 
     def hough(self) -> list[CoarseAttempt]:
         """The band's attempts from the Hough circles alone: one per grey stretch (a second where
-        :func:`tasks.vision.detection.preprocess.keep_small_tails` says the far tails differ)."""
-        if self._hough is None:
-            t0 = time.perf_counter()
-            small = downsample(self.image, self.factor)
-            pre, stretch = auto_gamma(small, self.p.median_ksize)
-            self.tm["preprocess"] = self.tm.get("preprocess", 0.0) + time.perf_counter() - t0
-            self._hough = [hough_attempt(pre, self.plate, self.factor, self.d_min, self.d_max, self.p, self.tm,
-                                         **self.kw)]
-            if stretch["tails_differ"]:
-                # a few dots on a large even page lie beyond the 1–99 % stretch (clipped, a faint halo
-                # round them can give the edges): search again stretched to the far tails
-                t0 = time.perf_counter()
-                pre, _ = auto_gamma(small, self.p.median_ksize, small_tails=True)
-                self.tm["preprocess"] = self.tm.get("preprocess", 0.0) + time.perf_counter() - t0
-                self._hough.append(hough_attempt(pre, self.plate, self.factor, self.d_min, self.d_max, self.p,
-                                                 self.tm, **self.kw))
+        :func:`tasks.vision.detection.preprocess.keep_small_tails` says the far tails differ: a few dots
+        on a large even page lie beyond the 1–99 % stretch, clipped, and a faint halo round them can give
+        the edges)."""
+        while self._n_stretches is None or len(self._hough) < self._n_stretches:
+            self._next_stretch()
         return self._hough
 
     def hough_is_final(self) -> bool:
         """True when :meth:`full` would return the Hough circles' grid: every stretch found it, so no
-        region contours are added."""
-        return all(a.ok for a in self.hough())
+        region contours are added. A stretch is searched only while the ones before it found the grid
+        (each stretch's search is its own, so the answer and the later attempts do not change)."""
+        while all(a.ok for a in self._hough) and (self._n_stretches is None or len(self._hough) < self._n_stretches):
+            self._next_stretch()
+        return all(a.ok for a in self._hough)
 
     def full(self) -> CoarseAttempt:
         """The band's result: each stretch's attempt with region contours where its circles give no

@@ -49,7 +49,14 @@ from tasks.vision.detection.grid import order_grid
 from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder
 from tasks.vision.detection.partial_view import too_few_dots
 from tasks.vision.detection.perspective import corrected_centres, fit_homography
-from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
+from tasks.vision.detection.preprocess import (
+    auto_gamma,
+    check_image,
+    coarse_to_full,
+    downsample,
+    full_to_coarse,
+    log_stretch,
+)
 from tasks.vision.detection.result import GridDetection
 from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
 from tasks.vision.detection.subpixel import SubpixelParams, refine_ellipses, rim_reach_px
@@ -365,6 +372,32 @@ def complete_window(attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams,
     return again if again.ok else None
 
 
+def on_log_scale(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
+                 **kw) -> CoarseAttempt:
+    """``attempt`` (a refusal) searched again on a log scale: its band's coarse image through
+    :func:`tasks.vision.detection.preprocess.log_stretch`, for dots of half to twice its lattice's median
+    size, Hough circles then regions as a band does; the new attempt when it finds the grid or is more
+    plate-like, else ``attempt``. ``image``: the full-size image; ``kw``: :func:`ordered_attempt`'s.
+
+    A cast shadow's edge across a plate of dark dots leaves the shadowed dots a fifth of the lit ones'
+    contrast on the band's gamma-stretched image: Canny's thresholds, set by the lit rims, drop them,
+    and the dots along the edge, whose regions merge with the shadow and whose ring from the lit dot to
+    the shadowed sheet fails the candidates' test, are left out; the lattice splits into a lit and a
+    shadowed part, neither with enough of a window to look again. On a log scale the shadow's edge is
+    a step of ln f, about half a dark dot's rim (ink at 0.14 of the sheet)."""
+    order = attempt.order
+    if order is None or order.lattice_index is None:
+        return attempt
+    d = float(np.median(2.0 * attempt.circles.axes[order.lattice_index, 0])) * attempt.factor
+    t0 = time.perf_counter()
+    pre = log_stretch(downsample(image, attempt.factor), p.median_ksize)
+    tm["preprocess"] = tm.get("preprocess", 0.0) + time.perf_counter() - t0
+    again = hough_attempt(pre, plate, attempt.factor, 0.5 * d, 2.0 * d, p, tm, **kw)
+    if not again.ok and p.contour_fallback:
+        again = with_regions(again, plate, 0.5 * d, 2.0 * d, p, tm, **kw)
+    return again if again.ok or again.plate_likeness(plate) > attempt.plate_likeness(plate) else attempt
+
+
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
                      ) -> tuple[CoarseCircles, np.ndarray]:
     """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
@@ -446,6 +479,8 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     if not attempt.ok:
         joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = joined if joined is not None else attempt
+    if not attempt.ok and expected_centres_px is None:
+        attempt = on_log_scale(image, attempt, plate, p, tm, **kw)
     if not attempt.ok and expected_centres_px is None:
         completed = complete_window(attempt, plate, p, tm, expected_rotation_deg=expected_rotation_deg,
                                     mirrored=mirrored)

@@ -398,6 +398,23 @@ def on_log_scale(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: 
     return again if again.ok or again.plate_likeness(plate) > attempt.plate_likeness(plate) else attempt
 
 
+def looked_again(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
+                 **kw) -> CoarseAttempt:
+    """The grid from a refused ``attempt`` searched again on a log scale (:func:`on_log_scale`), else
+    from the missing places of that search's lattice, else of ``attempt``'s (:func:`complete_window`);
+    else the more plate-like of the two refusals. ``image``: the full-size image; ``kw``:
+    :func:`ordered_attempt`'s, without predicted dot positions."""
+    logged = on_log_scale(image, attempt, plate, p, tm, **kw)
+    if logged.ok:
+        return logged
+    for refusal in [logged] if logged is attempt else [logged, attempt]:  # the log scale's lattice first
+        completed = complete_window(refusal, plate, p, tm, expected_rotation_deg=kw["expected_rotation_deg"],
+                                    mirrored=kw["mirrored"])
+        if completed is not None:
+            return completed
+    return logged
+
+
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
                      ) -> tuple[CoarseCircles, np.ndarray]:
     """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
@@ -480,11 +497,7 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         joined = join_bands(attempts, plate, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = joined if joined is not None else attempt
     if not attempt.ok and expected_centres_px is None:
-        attempt = on_log_scale(image, attempt, plate, p, tm, **kw)
-    if not attempt.ok and expected_centres_px is None:
-        completed = complete_window(attempt, plate, p, tm, expected_rotation_deg=expected_rotation_deg,
-                                    mirrored=mirrored)
-        attempt = completed if completed is not None else attempt
+        attempt = looked_again(image, attempt, plate, p, tm, **kw)
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

@@ -400,19 +400,19 @@ def on_log_scale(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: 
 
 def looked_again(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
                  **kw) -> CoarseAttempt:
-    """The grid from a refused ``attempt`` searched again on a log scale (:func:`on_log_scale`), else
-    from the missing places of that search's lattice, else of ``attempt``'s (:func:`complete_window`);
-    else the more plate-like of the two refusals. ``image``: the full-size image; ``kw``:
+    """The grid from the missing places of a refused ``attempt``'s lattice (:func:`complete_window`), else
+    from ``attempt`` searched again on a log scale (:func:`on_log_scale`) or that search's missing
+    places; else the more plate-like refusal. ``image``: the full-size image; ``kw``:
     :func:`ordered_attempt`'s, without predicted dot positions."""
+    looks = dict(expected_rotation_deg=kw["expected_rotation_deg"], mirrored=kw["mirrored"])
+    completed = complete_window(attempt, plate, p, tm, **looks)
+    if completed is not None:
+        return completed
     logged = on_log_scale(image, attempt, plate, p, tm, **kw)
-    if logged.ok:
+    if logged.ok or logged is attempt:
         return logged
-    for refusal in [logged] if logged is attempt else [logged, attempt]:  # the log scale's lattice first
-        completed = complete_window(refusal, plate, p, tm, expected_rotation_deg=kw["expected_rotation_deg"],
-                                    mirrored=kw["mirrored"])
-        if completed is not None:
-            return completed
-    return logged
+    completed = complete_window(logged, plate, p, tm, **looks)
+    return completed if completed is not None else logged
 
 
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False

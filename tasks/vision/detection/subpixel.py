@@ -638,7 +638,10 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     on a log scale (:func:`log_levels`) from their coarse ellipses (:func:`shadow_starts`); a dot
     keeps that ray fit where its rim residual drops (an unevenly lit one: below ``params.shadow_keep``
     times the first), without the pixel edge fit (whose model has no shadow), and is marked in
-    ``EllipseFits.shadowed``.
+    ``EllipseFits.shadowed``. A dark dot lit unevenly that keeps its first fit keeps it without the
+    pixel edge fit too: across a shadow's edge the sheet beside it, the bright side of its rim, steps by
+    the shadow's factor, and the edge fit's one level outside the rim pulled such dots up to 0.44 px
+    towards the shadow (``bench/bench_shadow_sweep.py``, dark dots crossed near their centres).
     """
     p = params or SubpixelParams()
     rng = np.random.default_rng(seed)
@@ -663,9 +666,10 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
             full[sel[better]] = part[better]
         shadowed[sel[better]] = True
         t_fit += t_log
-    if p.pixel_edge_fit and (ok & ~shadowed).any():
+    plain = ok & ~shadowed & ~(dark_dots & suspect & (spread > p.shadow_spread))
+    if p.pixel_edge_fit and plain.any():
         t0 = clock()
-        sel = np.flatnonzero(ok & ~shadowed)
+        sel = np.flatnonzero(plain)
         edges = fit_dot_edges(image, cen[sel], axs[sel], ths[sel], s_med[sel], p.edge_fit)
         use = sel[edges.ok]
         cen[use], axs[use], ths[use] = edges.centres[edges.ok], edges.axes[edges.ok], edges.theta[edges.ok]

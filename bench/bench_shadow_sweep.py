@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_shadow_sweep.py            # the sweep below, one line per dot size and polarity
     .venv/bin/python bench/bench_shadow_sweep.py --cases    # and one line per render
-    .venv/bin/python bench/bench_shadow_sweep.py --no-uneven-dark-edge-fit   # SubpixelParams(uneven_dark_edge_fit=False)
+    .venv/bin/python bench/bench_shadow_sweep.py --no-uneven-dark-edge-fit  # SubpixelParams(uneven_dark_edge_fit=False)
 
 Sweep: dark and light dots of 10, 14, 20, 30 and 40 px; the shadow at 0.35, 0.5 and 0.8 of the
 light; its edge blurred by 0.5 px, 0.15 and 0.5 of a dot; the edge passing the grid's centre at

@@ -13,8 +13,9 @@ import pytest
 from tasks.simulation.detector_stress import errors_up_to_symmetry
 from tasks.simulation.shadow_edge import ShadowEdgeCase, render_shadow_edge
 from tasks.vision.detection import detect_grid
+from tasks.vision.detection.framework import FrameworkParams, detect_rrht
 from tasks.vision.detection.preprocess import auto_gamma, log_stretch
-from tasks.vision.detection.subpixel import lit_spread, log_levels, refine_ellipses
+from tasks.vision.detection.subpixel import SubpixelParams, lit_spread, log_levels, refine_ellipses
 
 
 def _detect(case: ShadowEdgeCase):
@@ -104,3 +105,21 @@ def test_log_stretch_evens_a_shadow():
     assert edge / lit_rim == pytest.approx(np.log(0.35) / np.log(0.14), abs=0.05)
     _, gamma_shadowed_rim, gamma_edge = steps(auto_gamma(image, median_ksize=1)[0])
     assert gamma_edge > gamma_shadowed_rim
+
+
+def test_unevenly_lit_dark_dots_without_the_edge_fit():
+    """Dark 14 px dots, a sharp shadow edge at 0.35 of the light through two dots' centres (0.1 and 0.26
+    radius), the lit sheet saturated: by default the pixel edge fit, whose model has one level outside
+    the rim, puts those two 0.43–0.44 px towards the shadow; with
+    ``SubpixelParams(uneven_dark_edge_fit=False)`` they keep their ray fits, within 0.25 px, and every
+    dot is within 0.25 px."""
+    case = ShadowEdgeCase(14.0, shadow=0.35, edge_blur_px=0.5, edge_offset=0.8, exposure=1.3, seed=5)
+    image, truth, to_edge = render_shadow_edge(case)
+    plate = replace(case.plate, dark_dots=True)
+    crossed = to_edge < 0.3
+    assert crossed.sum() == 2
+    default = errors_up_to_symmetry(plate, detect_rrht(image, plate).centres, truth)
+    det = detect_rrht(image, plate, params=FrameworkParams(subpixel=SubpixelParams(uneven_dark_edge_fit=False)))
+    err = errors_up_to_symmetry(plate, det.centres, truth)
+    assert err.max() < 0.25, np.round(err, 3)
+    assert (err[crossed] < 0.6 * default[crossed]).all(), (np.round(err, 3), np.round(default, 3))

@@ -18,7 +18,8 @@ look like a filled dot on a clear ring of plate
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,
 two neighbouring bands' candidates are ordered together, then the most plate-like band's lattice
 (:meth:`CoarseAttempt.plate_likeness`) is looked at again where its best window lacks one or two
-dots inside the image (:mod:`tasks.vision.detection.completion`). A view without exactly one
+dots inside the image (:mod:`tasks.vision.detection.completion`), and failing that its band is searched
+again on a log scale (:func:`on_log_scale`: a cast shadow's edge across dark dots). A view without exactly one
 complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`,
 :mod:`tasks.vision.detection.lattice_reason`), the most plate-like band's: a wrong labelling is
 worse than none.

@@ -2,12 +2,13 @@
 
     .venv/bin/python bench/bench_shadow_sweep.py            # the sweep below, one line per dot size and polarity
     .venv/bin/python bench/bench_shadow_sweep.py --cases    # and one line per render
+    .venv/bin/python bench/bench_shadow_sweep.py --no-uneven-dark-edge-fit  # SubpixelParams(uneven_dark_edge_fit=False)
 
 Sweep: dark and light dots of 10, 14, 20, 30 and 40 px; the shadow at 0.35, 0.5 and 0.8 of the
 light; its edge blurred by 0.5 px, 0.15 and 0.5 of a dot; the edge passing the grid's centre at
 0, 0.4 and 0.8 of a dot radius (at 70° to the rows, so that it crosses several dots at various
 distances from their centres); exposure 1 and 1.3 (lit light dots saturated). Per render
-``detect_grid(image, plate, "rrht")`` with no prior; a grid counts as found when every dot is
+``detect_grid(image, plate, "rrht")`` (``detect_rrht``) with no prior; a grid counts as found when every dot is
 within a quarter of the dot size of its own true centre (up to the grid's symmetry), wrong
 otherwise. Errors (px) of the dots the edge crosses (within one radius of the centre) and of
 the others: median and worst over the found grids.
@@ -27,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tasks.simulation.detector_stress import errors_up_to_symmetry
 from tasks.simulation.shadow_edge import ShadowEdgeCase, render_shadow_edge
-from tasks.vision.detection import detect_grid
+from tasks.vision.detection.framework import FrameworkParams, detect_rrht
+from tasks.vision.detection.subpixel import SubpixelParams
 
 DOTS_PX = (10.0, 14.0, 20.0, 30.0, 40.0)
 SHADOWS = (0.35, 0.5, 0.8)
@@ -39,7 +41,10 @@ EXPOSURES = (1.0, 1.3)
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", action="store_true", help="print one line per render")
+    ap.add_argument("--no-uneven-dark-edge-fit", action="store_true",
+                    help="SubpixelParams(uneven_dark_edge_fit=False): no pixel edge fit on dark dots lit unevenly")
     args = ap.parse_args()
+    params = FrameworkParams(subpixel=SubpixelParams(uneven_dark_edge_fit=not args.no_uneven_dark_edge_fit))
     print(f"{'dots':12s} {'found':>5s} {'refused':>7s} {'wrong':>5s}  "
           "crossed: median / worst px   others: median / worst px")
     for dark, dot in itertools.product((True, False), DOTS_PX):
@@ -52,7 +57,7 @@ def main() -> None:
                                   exposure=exposure, seed=seed)
             image, truth, to_edge = render_shadow_edge(case)
             plate = replace(case.plate, dark_dots=dark)
-            det = detect_grid(image, plate, "rrht")
+            det = detect_rrht(image, plate, params=params)
             if not det.ok:
                 verdict, what = "refused", det.reason
             else:

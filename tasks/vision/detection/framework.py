@@ -18,9 +18,10 @@ look like a filled dot on a clear ring of plate
 against their local mean are added (:mod:`tasks.vision.detection.blobs`). When every band refuses,
 two neighbouring bands' candidates are ordered together, then the most plate-like band's lattice
 (:meth:`CoarseAttempt.plate_likeness`) is looked at again where its best window lacks one or two
-dots inside the image (:mod:`tasks.vision.detection.completion`); before that, for dots blurred as
-wide as the gap between them, each band's candidates with its faint regions and their sizes scaled
-for the blur's shrinking (:func:`shrunk_by_blur`). A dot whose rim fit fails is fitted again from a
+dots inside the image (:mod:`tasks.vision.detection.completion`), and failing that its band is searched
+again on a log scale (:func:`on_log_scale`: a cast shadow's edge across dark dots); before that, for dots
+blurred as wide as the gap between them, each band's candidates with its faint regions and their sizes
+scaled for the blur's shrinking (:func:`shrunk_by_blur`). A dot whose rim fit fails is fitted again from a
 well-fitted neighbour's ellipse (:func:`refit_from_neighbours`). A view without exactly one
 complete rows × cols window is refused with the reason (:mod:`tasks.vision.detection.grid`,
 :mod:`tasks.vision.detection.lattice_reason`), the most plate-like band's: a wrong labelling is
@@ -52,7 +53,14 @@ from tasks.vision.detection.grid import order_grid
 from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder
 from tasks.vision.detection.partial_view import too_few_dots
 from tasks.vision.detection.perspective import corrected_centres, fit_homography
-from tasks.vision.detection.preprocess import auto_gamma, check_image, coarse_to_full, downsample, full_to_coarse
+from tasks.vision.detection.preprocess import (
+    auto_gamma,
+    check_image,
+    coarse_to_full,
+    downsample,
+    full_to_coarse,
+    log_stretch,
+)
 from tasks.vision.detection.result import GridDetection
 from tasks.vision.detection.rrht import CoarseCircles, RRHTParams, rrht_circles
 from tasks.vision.detection.subpixel import EllipseFits, SubpixelParams, refine_ellipses, rim_reach_px
@@ -436,6 +444,49 @@ def skips_candidates(centres: np.ndarray, index: np.ndarray, plate: DotPlate) ->
     return bool((nearest < 0.25 * steps).any())
 
 
+def on_log_scale(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
+                 **kw) -> CoarseAttempt:
+    """``attempt`` (a refusal) searched again on a log scale: its band's coarse image through
+    :func:`tasks.vision.detection.preprocess.log_stretch`, for dots of half to twice its lattice's median
+    size, Hough circles then regions as a band does; the new attempt when it finds the grid or is more
+    plate-like, else ``attempt``. ``image``: the full-size image; ``kw``: :func:`ordered_attempt`'s.
+
+    A cast shadow's edge across a plate of dark dots leaves the shadowed dots a fifth of the lit ones'
+    contrast on the band's gamma-stretched image: Canny's thresholds, set by the lit rims, drop them,
+    and the dots along the edge, whose regions merge with the shadow and whose ring from the lit dot to
+    the shadowed sheet fails the candidates' test, are left out; the lattice splits into a lit and a
+    shadowed part, neither with enough of a window to look again. On a log scale the shadow's edge is
+    a step of ln f, about half a dark dot's rim (ink at 0.14 of the sheet)."""
+    order = attempt.order
+    if order is None or order.lattice_index is None:
+        return attempt
+    d = float(np.median(2.0 * attempt.circles.axes[order.lattice_index, 0])) * attempt.factor
+    t0 = time.perf_counter()
+    pre = log_stretch(downsample(image, attempt.factor), p.median_ksize)
+    tm["preprocess"] = tm.get("preprocess", 0.0) + time.perf_counter() - t0
+    again = hough_attempt(pre, plate, attempt.factor, 0.5 * d, 2.0 * d, p, tm, **kw)
+    if not again.ok and p.contour_fallback:
+        again = with_regions(again, plate, 0.5 * d, 2.0 * d, p, tm, **kw)
+    return again if again.ok or again.plate_likeness(plate) > attempt.plate_likeness(plate) else attempt
+
+
+def looked_again(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
+                 **kw) -> CoarseAttempt:
+    """The grid from the missing places of a refused ``attempt``'s lattice (:func:`complete_window`), else
+    from ``attempt`` searched again on a log scale (:func:`on_log_scale`) or that search's missing
+    places; else the more plate-like refusal. ``image``: the full-size image; ``kw``:
+    :func:`ordered_attempt`'s, without predicted dot positions."""
+    looks = dict(expected_rotation_deg=kw["expected_rotation_deg"], mirrored=kw["mirrored"])
+    completed = complete_window(attempt, plate, p, tm, **looks)
+    if completed is not None:
+        return completed
+    logged = on_log_scale(image, attempt, plate, p, tm, **kw)
+    if logged.ok or logged is attempt:
+        return logged
+    completed = complete_window(logged, plate, p, tm, **looks)
+    return completed if completed is not None else logged
+
+
 def merge_candidates(first: CoarseCircles, more: CoarseCircles, other_sizes: bool = False
                      ) -> tuple[CoarseCircles, np.ndarray]:
     """(``first`` and the circles of ``more`` that are not within half a minor axis of one of them,
@@ -569,9 +620,7 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         blurred = shrunk_by_blur(searched, plate, p, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = blurred if blurred is not None else attempt
     if not attempt.ok and expected_centres_px is None:
-        completed = complete_window(attempt, plate, p, tm, expected_rotation_deg=expected_rotation_deg,
-                                    mirrored=mirrored)
-        attempt = completed if completed is not None else attempt
+        attempt = looked_again(image, attempt, plate, p, tm, **kw)
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

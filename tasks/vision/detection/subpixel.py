@@ -102,6 +102,12 @@ class SubpixelParams:
     shadow_rms_px: float = 0.15  # … and so are dots whose rim residual exceeds this and …
     shadow_rms_ratio: float = 3.0  # … this many times the median dot's (shadow_suspects)
     shadow_keep: float = 0.5  # an unevenly lit suspect keeps its log-scale refit where that halves its rim residual
+    # the pixel edge fit also on dark dots lit unevenly (lit_spread above shadow_spread) that keep their first
+    # fit. Off: across a shadow's edge the sheet beside such a dot, its rim's bright side, steps by the
+    # shadow's factor, and the edge fit's one level outside the rim pulls the dot towards the shadow (up to
+    # 0.44 px on bench/bench_shadow_sweep.py's dark dots, 0.27 px without it); on by default, as on the garden
+    # sets' unevenly lit dots the edge fit helps as often as it harms (docs/detector-comparison.md)
+    uneven_dark_edge_fit: bool = True
 
 
 @dataclass
@@ -692,7 +698,8 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
     on a log scale (:func:`log_levels`) from their coarse ellipses (:func:`shadow_starts`); a dot
     keeps that ray fit where its rim residual drops (an unevenly lit one: below ``params.shadow_keep``
     times the first), without the pixel edge fit (whose model has no shadow), and is marked in
-    ``EllipseFits.shadowed``.
+    ``EllipseFits.shadowed``. With ``params.uneven_dark_edge_fit`` off, a dark dot lit unevenly that
+    keeps its first fit keeps it without the pixel edge fit too (see :class:`SubpixelParams`).
     """
     p = params or SubpixelParams()
     rng = np.random.default_rng(seed)
@@ -717,9 +724,12 @@ def refine_ellipses(image: np.ndarray, centres: np.ndarray, axes: np.ndarray, th
             full[sel[better]] = part[better]
         shadowed[sel[better]] = True
         t_fit += t_log
-    if p.pixel_edge_fit and (ok & ~shadowed).any():
+    plain = ok & ~shadowed
+    if not p.uneven_dark_edge_fit:
+        plain &= ~(dark_dots & suspect & (spread > p.shadow_spread))
+    if p.pixel_edge_fit and plain.any():
         t0 = clock()
-        sel = np.flatnonzero(ok & ~shadowed)
+        sel = np.flatnonzero(plain)
         edges = fit_dot_edges(image, cen[sel], axs[sel], ths[sel], s_med[sel], p.edge_fit)
         use = sel[edges.ok]
         cen[use], axs[use], ths[use] = edges.centres[edges.ok], edges.axes[edges.ok], edges.theta[edges.ok]

@@ -17,8 +17,15 @@ import pytest
 
 from tasks.machine.plate import DotPlate
 from tasks.simulation.detector_stress import StressCase, errors_up_to_symmetry, render_stress_case
-from tasks.vision.detection import detect_grid
-from tasks.vision.detection.framework import FrameworkParams, detect_rrht, skips_candidates
+from tasks.vision.detection import detect_grid, framework
+from tasks.vision.detection.framework import (
+    BLUR_BAND_DOT_PX,
+    FAINT_REGION_OFFSETS,
+    FAINT_TEXTURE_DENSITY,
+    FrameworkParams,
+    detect_rrht,
+    skips_candidates,
+)
 from tasks.vision.detection.neighbour_rims import DotRims, neighbour_shift
 
 
@@ -94,3 +101,26 @@ def test_a_window_stepping_over_dots_of_a_larger_grid_is_not_taken_for_the_plate
     assert skips_candidates(grid, every_other, plate)
     assert not skips_candidates(grid, adjacent, plate)
     assert not skips_candidates(grid[adjacent], np.arange(12), plate)  # the plate's 12 dots alone
+
+
+def test_the_blur_fallback_searches_small_dot_bands_only_and_no_fainter_offset_in_texture(monkeypatch):
+    """1300 × 1000 px of uniform noise, no plate: the bands' smallest dots are 10.2 (the first), 46, 12 and
+    6 px; only the last's faint regions are searched, and its window at offset 0.04 is texture, so 0.02
+    is not searched."""
+    image = np.random.default_rng(0).integers(0, 256, (1000, 1300), dtype=np.uint8)
+    calls = []
+    search = framework.contour_candidates
+
+    def recorded(img, dark, d_min, d_max, offset=0.08, **kw):
+        out = search(img, dark, d_min, d_max, offset, **kw)
+        calls.append((img.shape, d_min, offset, max(kw.get("contour_counts") or [0])))
+        return out
+
+    monkeypatch.setattr(framework, "contour_candidates", recorded)
+    det = detect_rrht(image, DotPlate(rows=4, cols=3, pitch_mm=6.0, dot_diameter_mm=4.0))
+    assert not det.ok
+    faint = [c for c in calls if c[2] in FAINT_REGION_OFFSETS]
+    assert [(shape, offset) for shape, _, offset, _ in faint] == [((1000, 1300), FAINT_REGION_OFFSETS[0])]
+    (_, d_min, _, regions), = faint
+    assert d_min <= BLUR_BAND_DOT_PX
+    assert regions * d_min**2 > FAINT_TEXTURE_DENSITY * image.size

@@ -21,12 +21,13 @@ from tasks.vision.detection.rrht import CoarseCircles
 
 def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: float,
                        offset_fraction: float = 0.08, min_convexity: float = 0.9,
-                       max_fill_error: float = 0.12) -> CoarseCircles:
+                       max_fill_error: float = 0.12, contour_counts: list[int] | None = None) -> CoarseCircles:
     """Ellipses (coarse px) of the dot-like regions of ``image`` (uint8, preprocessed).
 
     offset_fraction: a pixel belongs to a region when it is darker (lighter) than its local mean
     by this fraction of the image's 1–99 % grey range; min_convexity: region area over its convex
-    hull's; max_fill_error: |region area / fitted ellipse area − 1| allowed.
+    hull's; max_fill_error: |region area / fitted ellipse area − 1| allowed; contour_counts: when
+    given, each window's number of regions (of any size and shape) is appended to it.
     """
     lo, hi = np.percentile(image[::4, ::4], (1, 99))
     offset = offset_fraction * max(float(hi - lo), 1.0)
@@ -43,6 +44,8 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
         threshold -= offset  # in float32, as numpy's `mean - offset`
         mask = cv2.compare(src, threshold, cv2.CMP_LT)  # 255 where darker: findContours takes any non-zero
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        if contour_counts is not None:
+            contour_counts.append(len(contours))
         areas, convex = _convex_areas(contours, a_min, a_max, min_convexity)
         convex = np.flatnonzero(convex)
         ellipses = map(cv2.fitEllipse, (contours[i] for i in convex))

@@ -392,6 +392,16 @@ FAINT_REGION_OFFSETS = (0.04, 0.02)
 """Region thresholds (fractions of the image's grey range below the local mean,
 :func:`tasks.vision.detection.blobs.contour_candidates`) for faint dots: under such a blur the dots'
 cores are only a few per cent of a busy image's range darker than the mean around them."""
+BLUR_BAND_DOT_PX = 10.0
+"""The blur fallback searches only the bands whose smallest dot (full-size px) is at most this: the blur
+that fills the gap is a few px (σ ≈ 2–3 px), as wide as the gap only between dots of 8–16 px, whose
+shrunk candidates (from ×1/1.8) those bands find; every image has one (the first band of an image
+up to 1280 px across, the full-resolution band of small dots above)."""
+FAINT_TEXTURE_DENSITY = 0.25
+"""A faint-region window with more regions than this per square of the band's smallest dot (coarse
+px²) is texture, not dots (a grid's dots are at least a dot apart: at most one per square): the fainter
+offsets of that band are not searched (at full resolution on a textured 8 MP photograph they give
+over 10⁵ regions, and their contour search alone costs more than the whole detection)."""
 
 
 def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotPlate, p: FrameworkParams, tm: dict, *,
@@ -407,19 +417,26 @@ def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotP
     at a pitch of 1.5 diameters, beyond that. Scaled, the lattice links them and the rim fits start
     from the dot's size; every test of the window (its completeness and uniqueness, the strays, the
     parallelograms, the rim fits) is the same, and a window that steps over candidates (every other dot
-    of a larger grid, :func:`skips_candidates`) is not taken. Bands in their order, then the offsets,
-    then the factors from the smallest."""
+    of a larger grid, :func:`skips_candidates`) is not taken. Bands in their order (only those of small
+    dots, :data:`BLUR_BAND_DOT_PX`), then the offsets (none fainter once a window is texture,
+    :data:`FAINT_TEXTURE_DENSITY`), then the factors from the smallest."""
     for a, band in searched:
-        if a.levels is None or a.image is None:
+        if a.levels is None or a.image is None or band.d_min > BLUR_BAND_DOT_PX:
             continue
         for offset in FAINT_REGION_OFFSETS:
             t0 = time.perf_counter()
-            regions = contour_candidates(a.image, plate.dark_dots, band.d_min / a.factor, band.d_max / a.factor, offset)
+            counts: list[int] = []
+            d_min = band.d_min / a.factor
+            regions = contour_candidates(a.image, plate.dark_dots, d_min, band.d_max / a.factor, offset,
+                                         contour_counts=counts)
             faint, faint_levels = verified(a.image, regions, plate.dark_dots, p)
             c, added = merge_candidates(a.circles, faint)
             levels = np.concatenate([a.levels, faint_levels[added]])
             tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t0
+            texture = max(counts, default=0) * d_min**2 > FAINT_TEXTURE_DENSITY * a.image.size
             if len(c) < 4:
+                if texture:
+                    break
                 continue
             for g in BLUR_SHRINK:
                 grown = CoarseCircles(c.centres, c.axes * g, c.theta, c.votes, c.rim_ratio)
@@ -428,6 +445,8 @@ def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotP
                                         expected_centres_px=None)
                 if again.ok and not skips_candidates(c.centres, again.order.index, plate):
                     return again
+            if texture:  # a fainter offset finds more of the texture
+                break
     return None
 
 

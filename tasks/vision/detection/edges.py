@@ -45,13 +45,15 @@ def canny_edges(image: np.ndarray, high_percentile: float = 99.0, high_fraction:
 
 
 def gradient_magnitude(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-    """sqrt(gx² + gy²) (float32) of integer Sobel derivatives (|g| < 2¹¹, so the sum is exact),
-    correctly rounded: the same bits wherever the arrays lie in memory. ``cv2.magnitude``'s is off by
-    an ulp in about a quarter of the pixels, which ones depending on the arrays' alignment (the heap's
-    state, so the threads that ran before): the Canny thresholds moved by an ulp, and a Hough seed whose
-    gradient is exactly at the high threshold came and went."""
-    gx, gy = gx.astype(np.int32), gy.astype(np.int32)
-    return np.sqrt((gx * gx + gy * gy).astype(np.float32))
+    """sqrt(gx² + gy²) (float32) of integer Sobel derivatives (|g| < 2¹¹: the squares and their sum
+    are exact in float32), correctly rounded: the same bits wherever the arrays lie in memory.
+    ``cv2.magnitude``'s is off by an ulp in about a quarter of the pixels, which ones depending on the
+    arrays' alignment (the heap's state, so the threads that ran before): the Canny thresholds moved by
+    an ulp, and a Hough seed whose gradient is exactly at the high threshold came and went."""
+    fx, fy = gx.astype(np.float32), gy.astype(np.float32)
+    fx *= fx
+    fx += fy * fy
+    return np.sqrt(fx, out=fx)
 
 
 def pixels_where(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -242,3 +242,8 @@ def test_canny_thresholds_and_edges_do_not_depend_on_where_the_image_lies_in_mem
         em = canny_edges(copy_at(img, offset))
         runs.add((em.low, em.high, em.edges.tobytes()))
     assert len(runs) == 1
+    # on a busy image the median sets the high threshold: it is the correctly rounded magnitudes'
+    busy = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (120, 160)).astype(np.uint8), (0, 0), 1.5)
+    dx, dy = cv2.spatialGradient(busy, ksize=3)
+    rounded = np.sqrt(dx[::2, ::2].astype(np.float64) ** 2 + dy[::2, ::2].astype(np.float64) ** 2).astype(np.float32)
+    assert canny_edges(busy).high == 6.0 * float(np.median(rounded)) > 24.0

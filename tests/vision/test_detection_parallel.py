@@ -16,7 +16,7 @@ from tasks.machine.camera_model import CameraModel
 from tasks.machine.plate import DotPlate, facing_camera_pose
 from tasks.simulation.render import ImagingConditions, render_plate_image
 from tasks.vision.detection import blobs, framework, parallel, perspective
-from tasks.vision.detection.edges import pixels_where
+from tasks.vision.detection.edges import canny_edges, gradient_magnitude, pixels_where
 
 DIST = (-0.062, 0.115, 0.00012, -0.00018, -0.041)
 PLATE_A = DotPlate(7, 7, 5.0, 2.5, dark_dots=True, margin_mm=5.0, name="a")
@@ -214,3 +214,36 @@ def test_one_blas_thread_limits_every_blas_while_inside_and_restores_it():
             assert blas_threads() == [1] * len(before)
         assert blas_threads() == [1] * len(before)
     assert blas_threads() == before
+
+
+def copy_at(a: np.ndarray, offset: int) -> np.ndarray:
+    """A copy of ``a`` starting ``offset`` bytes past a 64-byte boundary."""
+    buf = np.empty(a.nbytes + 128, np.uint8)
+    start = (-buf.ctypes.data) % 64 + offset
+    out = buf[start : start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def test_canny_thresholds_and_edges_do_not_depend_on_where_the_image_lies_in_memory():
+    # which arrays a detection allocates where depends on the threads that ran before it; the
+    # thresholds' gradient magnitudes once changed by an ulp with the alignment, and a seed pixel
+    # exactly at the threshold changed the candidates (the garden's distant render 18 of seed 200)
+    cam = CameraModel(640, 480, 0.0048, 8.0, 321.0, 238.0, DIST)
+    plate = DotPlate(4, 3, 6.0, 4.0, dark_dots=True, margin_mm=5.0, name="small")
+    img = render_plate_image(cam, plate, facing_camera_pose([2.0, -1.0, 250.0], 25.0, 10.0, spin_deg=-80.0),
+                             ImagingConditions(), seed=7)
+    dx, dy = cv2.spatialGradient(img, ksize=3)
+    exact = np.sqrt(dx.astype(np.float64) ** 2 + dy.astype(np.float64) ** 2).astype(np.float32)  # rounded once
+    runs = set()
+    for offset in range(0, 64, 4):
+        gx, gy = copy_at(dx, offset), copy_at(dy, offset)
+        assert gradient_magnitude(gx, gy).tobytes() == exact.tobytes(), offset
+        em = canny_edges(copy_at(img, offset))
+        runs.add((em.low, em.high, em.edges.tobytes()))
+    assert len(runs) == 1
+    # on a busy image the median sets the high threshold: it is the correctly rounded magnitudes'
+    busy = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (120, 160)).astype(np.uint8), (0, 0), 1.5)
+    dx, dy = cv2.spatialGradient(busy, ksize=3)
+    rounded = np.sqrt(dx[::2, ::2].astype(np.float64) ** 2 + dy[::2, ::2].astype(np.float64) ** 2).astype(np.float32)
+    assert canny_edges(busy).high == 6.0 * float(np.median(rounded)) > 24.0

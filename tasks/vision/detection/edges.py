@@ -35,13 +35,25 @@ def canny_edges(image: np.ndarray, high_percentile: float = 99.0, high_fraction:
     dx, dy = cv2.spatialGradient(image, ksize=3)
     # percentile and median from a strided subsample: cheap and precise enough for thresholds; sorted
     # once, both are a lookup (numpy's selection on the unsorted array costs three times the sort)
-    sub = np.sort(cv2.magnitude(dx[::2, ::2].astype(np.float32), dy[::2, ::2].astype(np.float32)).ravel())
+    sub = np.sort(gradient_magnitude(dx[::2, ::2], dy[::2, ::2]).ravel())
     hi_p = float(np.percentile(sub, high_percentile)) if sub.size else 0.0
     med = float(np.median(sub)) if sub.size else 0.0
     high = max(min_high, 6.0 * med, high_fraction * hi_p)
     low = 0.5 * high
     edges = cv2.Canny(dx, dy, low, high, L2gradient=True)
     return EdgeMap(edges=edges, gx=dx, gy=dy, low=low, high=high)
+
+
+def gradient_magnitude(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """sqrt(gx² + gy²) (float32) of integer Sobel derivatives (|g| < 2¹¹: the squares and their sum
+    are exact in float32), correctly rounded: the same bits wherever the arrays lie in memory.
+    ``cv2.magnitude``'s is off by an ulp in about a quarter of the pixels, which ones depending on the
+    arrays' alignment (the heap's state, so the threads that ran before): the Canny thresholds moved by
+    an ulp, and a Hough seed whose gradient is exactly at the high threshold came and went."""
+    fx, fy = gx.astype(np.float32), gy.astype(np.float32)
+    fx *= fx
+    fx += fy * fy
+    return np.sqrt(fx, out=fx)
 
 
 def pixels_where(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

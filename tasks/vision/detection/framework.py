@@ -212,14 +212,18 @@ class BandSearch:
         self._n_stretches: int | None = None  # known once the first stretch is searched
         self._small: np.ndarray | None = None
 
+    def small(self) -> np.ndarray:
+        """The image downsampled by the band's factor (made once; its preprocessing is timed by the caller)."""
+        if self._small is None:
+            self._small = downsample(self.image, self.factor)
+        return self._small
+
     def _next_stretch(self) -> None:
         """Search the band's next grey stretch (the first: 1–99 %; the second, where
         :func:`tasks.vision.detection.preprocess.keep_small_tails` says the far tails differ: to them)."""
         t0 = time.perf_counter()
-        if self._small is None:
-            self._small = downsample(self.image, self.factor)
         small_tails = self._n_stretches is not None
-        pre, stretch = auto_gamma(self._small, self.p.median_ksize, small_tails=small_tails)
+        pre, stretch = auto_gamma(self.small(), self.p.median_ksize, small_tails=small_tails)
         if self._n_stretches is None:
             self._n_stretches = 2 if stretch["tails_differ"] else 1
         self.tm["preprocess"] = self.tm.get("preprocess", 0.0) + time.perf_counter() - t0
@@ -463,12 +467,13 @@ def skips_candidates(centres: np.ndarray, index: np.ndarray, plate: DotPlate) ->
     return bool((nearest < 0.25 * steps).any())
 
 
-def on_log_scale(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
+def on_log_scale(small: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
                  **kw) -> CoarseAttempt:
     """``attempt`` (a refusal) searched again on a log scale: its band's coarse image through
     :func:`tasks.vision.detection.preprocess.log_stretch`, for dots of half to twice its lattice's median
     size, Hough circles then regions as a band does; the new attempt when it finds the grid or is more
-    plate-like, else ``attempt``. ``image``: the full-size image; ``kw``: :func:`ordered_attempt`'s.
+    plate-like, else ``attempt``. ``small``: the image downsampled by the attempt's factor (its band's,
+:meth:`BandSearch.small`); ``kw``: :func:`ordered_attempt`'s.
 
     A cast shadow's edge across a plate of dark dots leaves the shadowed dots a fifth of the lit ones'
     contrast on the band's gamma-stretched image: Canny's thresholds, set by the lit rims, drop them,
@@ -481,7 +486,7 @@ def on_log_scale(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: 
         return attempt
     d = float(np.median(2.0 * attempt.circles.axes[order.lattice_index, 0])) * attempt.factor
     t0 = time.perf_counter()
-    pre = log_stretch(downsample(image, attempt.factor), p.median_ksize)
+    pre = log_stretch(small, p.median_ksize)
     tm["preprocess"] = tm.get("preprocess", 0.0) + time.perf_counter() - t0
     again = hough_attempt(pre, plate, attempt.factor, 0.5 * d, 2.0 * d, p, tm, **kw)
     if not again.ok and p.contour_fallback:
@@ -489,17 +494,17 @@ def on_log_scale(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: 
     return again if again.ok or again.plate_likeness(plate) > attempt.plate_likeness(plate) else attempt
 
 
-def looked_again(image: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
+def looked_again(small: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: FrameworkParams, tm: dict,
                  **kw) -> CoarseAttempt:
     """The grid from the missing places of a refused ``attempt``'s lattice (:func:`complete_window`), else
     from ``attempt`` searched again on a log scale (:func:`on_log_scale`) or that search's missing
-    places; else the more plate-like refusal. ``image``: the full-size image; ``kw``:
+    places; else the more plate-like refusal. ``small``: as :func:`on_log_scale`'s; ``kw``:
     :func:`ordered_attempt`'s, without predicted dot positions."""
     looks = dict(expected_rotation_deg=kw["expected_rotation_deg"], mirrored=kw["mirrored"])
     completed = complete_window(attempt, plate, p, tm, **looks)
     if completed is not None:
         return completed
-    logged = on_log_scale(image, attempt, plate, p, tm, **kw)
+    logged = on_log_scale(small, attempt, plate, p, tm, **kw)
     if logged.ok or logged is attempt:
         return logged
     completed = complete_window(logged, plate, p, tm, **looks)
@@ -639,7 +644,8 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
         blurred = shrunk_by_blur(searched, plate, p, tm, expected_rotation_deg=expected_rotation_deg, mirrored=mirrored)
         attempt = blurred if blurred is not None else attempt
     if not attempt.ok and expected_centres_px is None:
-        attempt = looked_again(image, attempt, plate, p, tm, **kw)
+        band = next(b for b in bands if b.factor == attempt.factor)  # bands of one factor share the image
+        attempt = looked_again(band.small(), attempt, plate, p, tm, **kw)
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

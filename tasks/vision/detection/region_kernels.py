@@ -66,7 +66,8 @@ def _hull_area(x, y):  # pragma: no cover - compiled
 def contour_areas(points, starts, lens, a_min, a_max):  # pragma: no cover - compiled
     """(area, hull area) (N,) of N closed contours, contour j being points[starts[j]:starts[j] + lens[j]]
     ((P, 2) float64 integer u, v); a contour whose area lies outside a_min … a_max, or with fewer than
-    6 points, gets NaN for both (not computed)."""
+    6 points, gets NaN for both (not computed). The exact form :func:`convex_contour_areas` answers
+    from (its test compares the two); the detector calls that one."""
     n = starts.shape[0]
     area = np.full(n, np.nan)
     hull = np.full(n, np.nan)

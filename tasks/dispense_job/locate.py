@@ -38,6 +38,7 @@ from scipy import ndimage
 from skimage.morphology import thin
 
 from tasks.dispense_job.area_acceptance import AcceptanceRules, accept_area
+from tasks.vision.detection.edges import gradient_magnitude
 
 # of 255: the grey tray is below 0.2 after the median, every solder mask above 0.3 under the brightest glare;
 # a fixed threshold, not Otsu's: Otsu's splits a blank tray's noise, and with boards it sits so high that
@@ -90,9 +91,9 @@ def blobs(binary: np.ndarray, min_px: int = 20) -> tuple[np.ndarray, list[np.nda
 
 def sobel_edges(mask: np.ndarray) -> np.ndarray:
     """Edge pixels (bool) of a blob mask (uint8 0/255): Sobel gradient magnitude (3 × 3, eq. 15) above
-    half its maximum."""
-    f = mask.astype(np.float32)
-    mag = cv2.magnitude(cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3))
+    half its maximum. The magnitudes are correctly rounded (``cv2.magnitude``'s ulp errors depend on
+    the arrays' alignment in memory, which would move pixels at exactly half the maximum)."""
+    mag = gradient_magnitude(cv2.Sobel(mask, cv2.CV_16S, 1, 0, ksize=3), cv2.Sobel(mask, cv2.CV_16S, 0, 1, ksize=3))
     return mag > 0.5 * mag.max() if mag.max() > 0 else np.zeros(mask.shape, bool)
 
 

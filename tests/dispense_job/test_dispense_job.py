@@ -14,7 +14,7 @@ import pytest
 from tasks.dispense_job.bead_path import bead_path
 from tasks.dispense_job.boards import TraySpec, render_tray
 from tasks.dispense_job.camera_view import camera_image
-from tasks.dispense_job.locate import locate
+from tasks.dispense_job.locate import locate, sobel_edges
 from tasks.dispense_job.pixel_map import (
     PAPER_TABLE2_MM,
     PAPER_TABLE2_PX,
@@ -47,6 +47,19 @@ def test_every_intact_board_is_found_to_10_um_and_every_defective_one_rejected_f
     assert intact.centre_error_mm.max() < intact.paper_centre_error_mm.max()
     assert np.abs(intact.angle_error_deg).max() < 0.5
     assert np.allclose(intact.width_mm, 2.0, atol=0.05) and np.allclose(intact.length_mm, 4.0, atol=0.1)
+
+
+def test_a_blobs_sobel_edges_are_the_exact_half_maximum_threshold_of_its_gradient():
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        h, w = (int(n) for n in rng.integers(20, 120, 2))
+        mask = np.zeros((h, w), np.uint8)
+        box = ((float(rng.uniform(5, w - 5)), float(rng.uniform(5, h - 5))),
+               (float(rng.uniform(4, w)), float(rng.uniform(4, h))), float(rng.uniform(0, 180)))
+        cv2.ellipse(mask, box, 255, -1)
+        f = mask.astype(np.float64)
+        magnitude = np.hypot(cv2.Sobel(f, cv2.CV_64F, 1, 0, ksize=3), cv2.Sobel(f, cv2.CV_64F, 0, 1, ksize=3))
+        assert np.array_equal(sobel_edges(mask), magnitude > 0.5 * magnitude.max())
 
 
 def test_a_blank_tray_has_no_board():

@@ -19,7 +19,7 @@ from scipy.special import ndtr
 from tasks.vision.detection import blobs, conics, rrht, step_kernels, subpixel
 from tasks.vision.detection.chain_kernels import screen_contours
 from tasks.vision.detection.chaincode import FREEMAN_CODE, chain_codes, filter_edges
-from tasks.vision.detection.edges import canny_edges
+from tasks.vision.detection.edges import N_DIRECTIONS, canny_edges
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas
 from tasks.vision.detection.rrht import local_maxima
@@ -330,6 +330,13 @@ def test_canny_gradients_are_the_two_sobel_derivatives():
         em = canny_edges(img)
         assert np.array_equal(em.gx, cv2.Sobel(img, cv2.CV_16S, 1, 0, ksize=3))
         assert np.array_equal(em.gy, cv2.Sobel(img, cv2.CV_16S, 0, 1, ksize=3))
+
+
+def test_direction_codes_wrap_by_a_bit_mask():
+    # the rim walks of tasks.vision.detection.rrht take the codes' difference modulo the count by a mask
+    assert N_DIRECTIONS & (N_DIRECTIONS - 1) == 0
+    d = np.arange(-2 * N_DIRECTIONS, 2 * N_DIRECTIONS)
+    assert np.array_equal(d & (N_DIRECTIONS - 1), d % N_DIRECTIONS)
 
 
 def test_local_maxima_are_the_dilation_peaks():

@@ -73,20 +73,21 @@ _COMPILED = {"cache": True, "nogil": True}  # compiled once per machine (see tas
 
 
 @njit(**_COMPILED)
-def _code_matches(code: int, target: int, tol: int) -> bool:
-    """An edge pixel (code ≠ 255) whose gradient direction is within ``tol`` codes of ``target``."""
+def _code_matches(code: int, target: int, tol: int, n_codes: int) -> bool:
+    """An edge pixel (code ≠ 255) whose gradient direction is within ``tol`` of ``n_codes`` codes per
+    turn (a power of two) of ``target``."""
     if code == 255:
         return False
-    d = (code - target) % N_DIRECTIONS
-    return min(d, N_DIRECTIONS - d) <= tol
+    d = (code - target) & (n_codes - 1)  # the modulo, without a division
+    return min(d, n_codes - d) <= tol
 
 
 @njit(**_COMPILED)
-def _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol):  # pragma: no cover - compiled
+def _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol, n_codes):  # pragma: no cover
     """Per seed pixel (us, vs (S,) int, unit ``inward`` (S, 2)): the first diameter of ``t_all``
     (T,) px whose far end, rounded to a pixel of the padded direction-code map ``flat`` (row
     width ``wp``, padding ``pad``), is an edge pixel whose code is within ``tol`` of
-    ``opposite`` (S,); NaN where none is."""
+    ``opposite`` (S,) (``n_codes`` codes per turn); NaN where none is."""
     n = us.shape[0]
     d = np.full(n, np.nan)
     for i in range(n):
@@ -94,18 +95,18 @@ def _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol): 
             t = t_all[j]
             pu = np.int64(np.rint(us[i] + inward[i, 0] * t)) + pad
             pv = np.int64(np.rint(vs[i] + inward[i, 1] * t)) + pad
-            if _code_matches(np.int64(flat[pv * wp + pu]), np.int64(opposite[i]), tol):
+            if _code_matches(np.int64(flat[pv * wp + pu]), np.int64(opposite[i]), tol, n_codes):
                 d[i] = t
                 break
     return d
 
 
 @njit(**_COMPILED)
-def _first_rim_points(centres, radii, cs, sn, steps, ray_code, flat, wp, h, w, pad):  # pragma: no cover
+def _first_rim_points(centres, radii, cs, sn, steps, ray_code, flat, wp, h, w, pad, n_codes):  # pragma: no cover
     """Per candidate (centres (K, 2), radii (K,)) and ray (cos, sin (R,)): the first pixel at
     ``steps`` (T,) × radius along the ray that is an edge pixel of the padded direction-code map
-    ``flat`` with a code within 45° of ``ray_code`` (R,): (x, y (K, R) px, found (K, R)); where
-    none is found, the ray's first pixel."""
+    ``flat`` with a code within 45° of ``ray_code`` (R,; ``n_codes`` codes per turn): (x, y (K, R) px,
+    found (K, R)); where none is found, the ray's first pixel."""
     k, nr, nt = centres.shape[0], cs.shape[0], steps.shape[0]
     x = np.empty((k, nr))
     y = np.empty((k, nr))
@@ -120,7 +121,7 @@ def _first_rim_points(centres, radii, cs, sn, steps, ray_code, flat, wp, h, w, p
                     x[i, r], y[i, r] = pu, pv
                 if -pad <= pu < w + pad and -pad <= pv < h + pad:
                     code = np.int64(flat[(pv + pad) * wp + (pu + pad)])
-                    if _code_matches(code, np.int64(ray_code[r]), N_DIRECTIONS // 8):
+                    if _code_matches(code, np.int64(ray_code[r]), n_codes // 8, n_codes):
                         x[i, r], y[i, r] = pu, pv
                         has[i, r] = True
                         break
@@ -161,7 +162,7 @@ def sample_diameters(em: EdgeMap, dirs: np.ndarray, dark_dots: bool, r_min: floa
     flat, wp, pad = _padded(dirs, int(t_all[-1]) + 2, padded)
     opposite = (dirs[vs, us].astype(np.int16) + N_DIRECTIONS // 2) % N_DIRECTIONS
     tol = int(np.degrees(np.arccos(params.antiparallel_cos)) / (360.0 / N_DIRECTIONS))
-    d = _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol)
+    d = _walk_to_opposite_rim(us, vs, inward, opposite, t_all, flat, wp, pad, tol, N_DIRECTIONS)
     has = np.isfinite(d)
     d = d[has]
     p1 = np.stack([us[has], vs[has]], axis=1).astype(float)
@@ -245,7 +246,7 @@ def fit_candidates(dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray, dar
     if not dark_dots:
         ray_code = (ray_code + N_DIRECTIONS // 2) % N_DIRECTIONS
     x, y, has = _first_rim_points(np.ascontiguousarray(centres, dtype=float), np.ascontiguousarray(radii, dtype=float),
-                                  cs, sn, steps, ray_code, flat, wp, h, w, pad)
+                                  cs, sn, steps, ray_code, flat, wp, h, w, pad, N_DIRECTIONS)
     scale = np.maximum(radii, 1.0)
     xn = (x - centres[:, 0:1]) / scale[:, None]
     yn = (y - centres[:, 1:2]) / scale[:, None]

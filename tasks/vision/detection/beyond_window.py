@@ -14,9 +14,12 @@ it, grown by the ratio of the two candidates' sizes (the step grows with the dot
 local magnification of perspective or a fisheye). There alone a region is thresholded as when
 looking again for a missed dot (:func:`tasks.vision.detection.completion.find_dot_at`: within 0.3 of
 a step of the place, convex and elliptical, darker (lighter) than the paper by a quarter of the
-window's contrast); it counts when its disc passes the candidates' test and it carries on the edge
+window's contrast); it counts when its disc passes the candidates' test, it carries on the edge
 dot's size and grey levels (:func:`tasks.vision.detection.lattice_check.like_the_dot_behind`, the
-edge dot measured by the same thresholding). As many such dots as the strays rule's limit
+edge dot measured by the same thresholding) and it has the edge dot's shape: the same printed disc
+one step on, seen through nearly the same local projection (:func:`shape_stretch` under
+:data:`~tasks.vision.detection.grid_order.SIMILAR_SIZE`; a clutter disc half hidden by the plate's
+edge, or round where the dots are foreshortened, is not). As many such dots as the strays rule's limit
 (:func:`tasks.vision.detection.lattice_check.extra_dot_limit`, 2 for a 4 × 3 plate) refuse the
 window. Paper, the sheet's edge and the clipboard beyond a plate of the size asked hold no such dot.
 A window two dots wide through a strong fisheye predicts the place beyond it to within half a step
@@ -52,6 +55,21 @@ def beyond_places(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray, np.ndar
                 back = (r - dr, c - dc)
                 behind.append(back if 0 <= back[0] < rows and 0 <= back[1] < cols else (r, c))
     return np.array(places), np.array(edge), np.array(behind)
+
+
+def shape_stretch(ellipse: np.ndarray, other: np.ndarray) -> float:
+    """How far (≥ 1) one of two ellipses (major semi-axis, minor semi-axis, major axis's angle rad) must be
+    stretched along some direction, its area kept, to take the other's shape: 1 for the same aspect and
+    angle at any size, the square root of the ratio of their aspects for the same angle, more where the
+    angles differ."""
+
+    def unit_shape(a: float, b: float, theta: float) -> np.ndarray:
+        c, s = np.cos(theta), np.sin(theta)
+        rot = np.array([[c, -s], [s, c]])
+        return rot @ np.diag([a / b, b / a]) @ rot.T
+
+    eig = np.linalg.eigvals(np.linalg.solve(unit_shape(*ellipse), unit_shape(*other))).real
+    return float(np.sqrt(eig.max()))
 
 
 def dots_beyond(image: np.ndarray, circles: CoarseCircles, index: np.ndarray, levels: np.ndarray, plate: DotPlate,
@@ -97,7 +115,8 @@ def dots_beyond(image: np.ndarray, circles: CoarseCircles, index: np.ndarray, le
         if (k, kb) not in measured:
             measured[k, kb] = region(pts[k], step)
         dot = measured[k, kb]
-        if dot is not None and like_the_dot_behind(beyond[7], growth * dot[7], beyond[5:7], dot[5:7]):
+        if dot is not None and like_the_dot_behind(beyond[7], growth * dot[7], beyond[5:7], dot[5:7]) \
+                and shape_stretch(beyond[2:5], dot[2:5]) < SIMILAR_SIZE:
             found.append(beyond[:2])
     return np.array(found).reshape(-1, 2)
 

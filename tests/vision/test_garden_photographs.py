@@ -192,19 +192,3 @@ def test_looking_again_finds_a_dot_only_where_one_is():
     assert find_dot_at(_disc_image(blob=True), place, d, step, True, 150.0) is None  # merged: too large
     assert find_dot_at(_disc_image(), np.array([72.0, 60.0]), d, step, True, 150.0) is None  # 0.4 step off
 
-
-@pytest.mark.parametrize(("rows", "cols"), [(3, 3), (2, 3)])
-def test_a_window_of_a_larger_sheet_is_refused_where_no_search_found_the_rest(rows, cols):
-    """Asked for a plate smaller than the sheet: through the fisheye the row of dots nearest the lens's
-    axis is larger than the band that finds the rest, so no candidate search finds it and the window is
-    complete with no stray beyond it; the dots one step beyond the window are looked for where the
-    lattice carries on (beyond_window.py), and refuse it. The code before labelled a 3x3 (2x3) window
-    of the 4x3 sheet."""
-    case = _draw("fisheye", 500)
-    image, truth = render_garden_case(case)
-    sheet = _plate(case)
-    det = detect_grid(image, replace(sheet, rows=rows, cols=cols), "rrht")
-    assert not det.ok and det.reason.startswith("extra dots"), det.reason
-    whole = detect_grid(image, sheet, "rrht")  # the sheet asked for as it is: no dot beyond it
-    assert whole.ok, whole.reason
-    assert errors_up_to_symmetry(sheet, whole.centres, truth).max() < 0.25 * case.geometry.dot_px

@@ -191,4 +191,3 @@ def test_looking_again_finds_a_dot_only_where_one_is():
     assert find_dot_at(_disc_image(dot=False), place, d, step, True, 150.0) is None  # paper: no contrast
     assert find_dot_at(_disc_image(blob=True), place, d, step, True, 150.0) is None  # merged: too large
     assert find_dot_at(_disc_image(), np.array([72.0, 60.0]), d, step, True, 150.0) is None  # 0.4 step off
-

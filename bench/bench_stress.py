@@ -31,7 +31,8 @@ cv2.findCirclesGrid on the images both found.
 ``--random N`` draws N cases with :func:`tasks.simulation.detector_stress.random_case` (those whose dots are
 not all wholly in view are skipped) and counts, for RRHT and findCirclesGrid with clustering, the
 grids found and correctly labelled (RRHT: each dot within a quarter of its size of its own true
-centre, up to the grid's symmetry; OpenCV: one-to-one as above), refused, and found but wrong;
+centre, up to the grid's symmetry, a mirrored labelling wrong; OpenCV: one-to-one as above), refused,
+and found but wrong, and the worst dot's error over the grids found;
 findCirclesGrid without clustering too. ``--garden REGIME`` draws garden photographs of a sheet on a
 clipboard (:func:`tasks.simulation.garden_stress.random_garden_case`: phone, fisheye or distant).
 """
@@ -109,6 +110,15 @@ def score(detector: str, centres: np.ndarray | None, plate: DotPlate, truth: np.
     return ("found", e) if e is not None else ("wrong", None)
 
 
+def mirrored(plate: DotPlate, centres: np.ndarray, truth: np.ndarray) -> bool:
+    """Whether a labelling (rows*cols, 2) px fits the truth better with its rows or its columns alone
+    flipped than as it is or turned by half a turn: the wrong handedness, which
+    :func:`errors_up_to_symmetry` accepts (on renders the truth has the plate's own handedness)."""
+    g = centres.reshape(plate.rows, plate.cols, 2)
+    proper = min(float(np.median(np.linalg.norm(c.reshape(-1, 2) - truth, axis=1))) for c in (g, g[::-1, ::-1]))
+    return proper > float(np.median(errors_up_to_symmetry(plate, centres, truth)))
+
+
 def stress_images(cases, seeds: int):
     """Render each named stress case with ``seeds`` seeds (case.seed, +100, +200 …). Yields (case, image,
     truth px, plate)."""
@@ -149,6 +159,7 @@ def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = No
     detectors = ("rrht", "cv2+clustering", "cv2")
     counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in detectors}
     errs: dict[str, list[float]] = {d: [] for d in counts}
+    worst: dict[str, list[float]] = {d: [] for d in counts}
     n_cases = 0
     for geometry, image, truth, plate, what in random_images(n, seed, fisheye, garden):
         n_cases += 1
@@ -157,15 +168,19 @@ def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = No
             det = detect_grid(image, plate, "rrht") if d == "rrht" else None
             c = run(d, image, plate) if det is None else (det.centres if det.ok else None)
             verdict, e = score(d, c, plate, truth, geometry.dot_px)
+            if d == "rrht" and verdict == "found" and mirrored(plate, c, truth):
+                verdict, e = "wrong", None
             errs[d] += [float(np.median(e))] if e is not None else []
+            worst[d] += [float(e.max())] if e is not None else []
             counts[d][verdict] += 1
             verdicts.append(f"{d} {verdict}" + (f" ({det.reason})" if det is not None and c is None else ""))
         print(f"{geometry.name:11s} {what}: " + ", ".join(verdicts), flush=True)
     print(f"\n{n_cases} random cases in view (of {n} drawn, seed {seed})")
     for d, c in counts.items():
         med = statistics.median(errs[d]) if errs[d] else float("nan")
+        worst_dot = max(worst[d]) if worst[d] else float("nan")
         print(f"{d:15s} found {c['found']}, refused {c['refused']}, wrong {c['wrong']}; "
-              f"median of the per-image median centre errors {med:.3f} px")
+              f"median of the per-image median centre errors {med:.3f} px, worst dot {worst_dot:.3f} px")
 
 
 def envelope_run(dot_sizes: list[float], tilts: list[float], size: str | None, defocus_px: float, k1: float) -> None:

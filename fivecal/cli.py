@@ -196,6 +196,7 @@ def detect(
 ) -> None:
     """Run a dot-grid detector on one image and print the ordered centres with their fit quality."""
     import json
+    from dataclasses import replace
 
     import cv2
     import numpy as np
@@ -221,6 +222,11 @@ def detect(
         row_pitch_mm = plate_a.row_pitch_mm if row_pitch_mm is None else row_pitch_mm
     plate = DotPlate(rows, cols, pitch_mm, diameter_mm, dark_dots=not light_dots, row_pitch_mm=row_pitch_mm)
     result = detect_grid(grey, plate, detector, expected_rotation_deg=rotation_deg)
+    if not result.ok:  # a grid of the other polarity is refused with a reason about its lattice: say so
+        other = detect_grid(grey, replace(plate, dark_dots=light_dots), detector, expected_rotation_deg=rotation_deg)
+        if other.ok:
+            found_as = "dark dots: run without" if light_dots else "light dots: run with"
+            result = replace(result, reason=f"{result.reason}; the grid is found as {found_as} --light-dots")
     if debug_image is not None:
         from tasks.vision.detection.debug_image import draw_detection
 

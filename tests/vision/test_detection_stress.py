@@ -126,6 +126,19 @@ def test_debug_image_shows_the_verdict_and_the_cli_writes_it(tmp_path):
     assert bad.exit_code == 2 and "debug.png" in bad.output
 
 
+
+def test_detect_says_when_the_grid_is_found_in_the_other_polarity(tmp_path):
+    """Light dots asked for as dark ones (no --light-dots) are refused, and the reason says the grid is
+    there as light dots (the code before gave only the lattice's reason, "missing dots: …")."""
+    case = CASES["fisheye-light"]
+    image, _ = render_stress_case(case)
+    path = tmp_path / "light.png"
+    cv2.imwrite(str(path), image)
+    args = ["detect", str(path), "--rows", "4", "--cols", "3", "--pitch-mm", "6", "--diameter-mm", "4"]
+    wrong = CliRunner().invoke(app, args)
+    assert wrong.exit_code == 1 and "found as light dots: run with --light-dots" in wrong.output, wrong.output
+    assert CliRunner().invoke(app, [*args, "--light-dots"]).exit_code == 0
+
 def test_region_contours_alone_find_the_grid():
     """The fallback candidates (tasks.vision.detection.blobs) on their own: no Hough circle is accepted."""
     from tasks.vision.detection.framework import FrameworkParams, detect_rrht

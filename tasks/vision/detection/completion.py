@@ -80,12 +80,13 @@ def predict_missing(points: np.ndarray, coords: np.ndarray, sizes: np.ndarray, r
 
 
 def find_dot_at(image: np.ndarray, place: np.ndarray, diameter: float, step: float, dark_dots: bool,
-                contrast: float) -> np.ndarray | None:
+                contrast: float, any_size: bool = False) -> np.ndarray | None:
     """(u, v, major semi-axis, minor semi-axis, major-axis angle rad) of the dot-like region of
     ``image`` (uint8) at ``place`` (px), or None: the region darker (lighter) than halfway between
     the place's darkest grey and the paper around it, within :data:`MAX_PLACE_OFFSET_STEPS` of a step
-    of the place, of the expected ``diameter`` (within :data:`SIMILAR_SIZE` in area's diameter),
-    convex and elliptical; ``contrast`` is the window dots' median contrast (grey levels)."""
+    of the place, of the expected ``diameter`` (within :data:`SIMILAR_SIZE` in area's diameter; with
+    ``any_size``, of any size that leaves the region inside 1.5 steps around the place), convex and
+    elliptical; ``contrast`` is the window dots' median contrast (grey levels)."""
     h, w = image.shape
     half = int(np.ceil(0.75 * step))
     u0, v0 = int(np.rint(place[0])) - half, int(np.rint(place[1])) - half
@@ -113,7 +114,7 @@ def find_dot_at(image: np.ndarray, place: np.ndarray, diameter: float, step: flo
     x, y, bw, bh, area = stats[k]
     if x == 0 or y == 0 or x + bw >= src.shape[1] or y + bh >= src.shape[0]:
         return None  # the region runs beyond the place: merged with something larger than a dot
-    if not diameter / SIMILAR_SIZE < 2.0 * np.sqrt(area / np.pi) < diameter * SIMILAR_SIZE:
+    if not any_size and not diameter / SIMILAR_SIZE < 2.0 * np.sqrt(area / np.pi) < diameter * SIMILAR_SIZE:
         return None
     contours, _ = cv2.findContours((labels == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     c = max(contours, key=cv2.contourArea)

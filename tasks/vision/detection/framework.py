@@ -45,6 +45,7 @@ from itertools import pairwise
 import numpy as np
 
 from tasks.machine.plate import DotPlate
+from tasks.vision.detection.beyond_window import continued_beyond
 from tasks.vision.detection.blobs import contour_candidates
 from tasks.vision.detection.chaincode import filter_edges
 from tasks.vision.detection.completion import missed_dots
@@ -654,6 +655,10 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
             debug["lattice_px"] = coarse_to_full(circles.centres[order.lattice_index], factor)
             debug["lattice_coords"] = order.lattice_coords
         return fail(attempt.reason, **debug)
+    if expected_centres_px is None:  # a window of a larger plate whose other dots no candidate search found
+        beyond = continued_beyond(attempt.image, circles, order.index, attempt.levels, plate, p.min_fill_inside)
+        if beyond:
+            return fail(beyond, **debug)
     rc = plate.row_col()
     found = order.index >= 0
     gap_ratio = plate.pitch_range_mm[0] / plate.dot_diameter_mm - 1.0

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from tasks.machine.plate import DotPlate
 from tasks.vision.detection.grid_order import SIMILAR_SIZE, GridOrder, fail_order, lattice_steps, rotation_deg
-from tasks.vision.detection.lattice_check import check_window, plate_like_strays
+from tasks.vision.detection.lattice_check import check_window, extra_dot_limit, plate_like_strays
 from tasks.vision.detection.lattice_reason import best_window_fill, incomplete_lattice_reason
 from tasks.vision.detection.partial_view import order_by_prior
 
@@ -343,7 +343,7 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
                           window_dots=need)
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
-    limit = max(2, (min(rows, cols) + 1) // 2)
+    limit = extra_dot_limit(rows, cols)
     if strays >= limit and levels is not None and sizes is not None:
         like = plate_like_strays(points, sizes, levels, occ, windows[0]).sum()
         strays = strays if like >= limit else 0

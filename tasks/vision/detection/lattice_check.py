@@ -167,11 +167,24 @@ def _continues(points, sizes, levels, k3: int, k2: int, k1: int, k: int) -> bool
     ahead = points[k1] + 2.0 * delta - (points[k2] - points[k3])
     if np.linalg.norm(points[k] - ahead) > STRAY_MAX_STEP_MISFIT * np.linalg.norm(delta):
         return False
-    size_ahead = 2.0 * sizes[k1] - sizes[k2]
-    if not STRAY_SIZE_RANGE[0] < sizes[k] / max(size_ahead, 1e-9) < STRAY_SIZE_RANGE[1]:
+    return like_the_dot_behind(sizes[k], 2.0 * sizes[k1] - sizes[k2], levels[k], levels[k1])
+
+
+def like_the_dot_behind(size: float, size_ahead: float, levels: np.ndarray, levels_behind: np.ndarray) -> bool:
+    """Whether a dot of diameter ``size`` px and grey levels ``levels`` (2,) (inside, ring) continues a line of
+    the plate's dots: its size within :data:`STRAY_SIZE_RANGE` of ``size_ahead`` (px, extrapolated along the
+    line) and its levels within :data:`STRAY_MAX_LEVEL_CHANGE` of the contrast of the dot behind it
+    (``levels_behind`` (2,))."""
+    if not STRAY_SIZE_RANGE[0] < size / max(size_ahead, 1e-9) < STRAY_SIZE_RANGE[1]:
         return False
-    contrast = abs(levels[k1, 1] - levels[k1, 0])
-    change = np.abs(levels[k] - levels[k1]) / max(contrast, 1e-9)
+    contrast = abs(levels_behind[1] - levels_behind[0])
+    change = np.abs(levels - levels_behind) / max(contrast, 1e-9)
     if not np.isfinite(change).all():  # a dot without samples in the image: its levels cannot tell
         return True
     return bool(np.all(change <= np.array(STRAY_MAX_LEVEL_CHANGE)))
+
+
+def extra_dot_limit(rows: int, cols: int) -> int:
+    """How many plate-like dots beyond a complete rows × cols window refuse it (\"extra dots\"): one may be
+    clutter that happens to sit on the lattice; a row or column of a larger plate holds more."""
+    return max(2, (min(rows, cols) + 1) // 2)

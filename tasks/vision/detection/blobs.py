@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.vision.detection.parallel import map_kernel
-from tasks.vision.detection.region_kernels import convex_contour_areas
+from tasks.vision.detection.region_kernels import convex_contour_areas, darker_than_mean
 from tasks.vision.detection.rrht import CoarseCircles
 
 
@@ -49,8 +49,7 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
     def regions(k: int) -> np.ndarray:  # (N, 6) cu, cv, a, b, θ, area of one window's dot-like regions
         if (dark_dots, k) not in means:
             means[dark_dots, k] = cv2.blur(src, (k, k), borderType=cv2.BORDER_REFLECT)
-        threshold = means[dark_dots, k] - np.float32(offset)  # in float32, as numpy's `mean - offset`
-        mask = cv2.compare(src, threshold, cv2.CMP_LT)  # 255 where darker: findContours takes any non-zero
+        mask = darker_than_mean(src, means[dark_dots, k], np.float32(offset))  # findContours takes any non-zero
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         if contour_counts is not None:
             contour_counts.append(len(contours))
@@ -99,10 +98,26 @@ def _convex_areas(contours, a_min: float, a_max: float, min_convexity: float) ->
     """(area px², convex) (N,) of the N contours: ``cv2.contourArea`` of the contour to every bit (NaN for
     contours of fewer than 6 points or an area outside a_min … a_max), and whether it is at least
     ``min_convexity`` of its ``cv2.convexHull``'s, in one compiled pass
-    (:func:`region_kernels.convex_contour_areas`)."""
+    (:func:`region_kernels.convex_contour_areas`) over the contours :func:`can_enclose` lets through."""
+    area, convex = np.full(len(contours), np.nan), np.zeros(len(contours), bool)
     if not contours:
-        return np.empty(0), np.empty(0, bool)
+        return area, convex
     lens = np.fromiter(map(len, contours), np.int64, len(contours))
+    some = np.flatnonzero(can_enclose(lens, a_min))
+    if not len(some):
+        return area, convex
+    lens = lens[some]
     starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
-    points = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
-    return convex_contour_areas(points, starts, lens, a_min, a_max, min_convexity)
+    points = np.concatenate([contours[i] for i in some]).reshape(-1, 2).astype(np.float64)
+    area[some], convex[some] = convex_contour_areas(points, starts, lens, a_min, a_max, min_convexity)
+    return area, convex
+
+
+def can_enclose(lens: np.ndarray, a_min: float) -> np.ndarray:
+    """(N,) bool: the closed contours of ``lens`` (N,) points (``cv2.CHAIN_APPROX_NONE``: each step to one of
+    the 8 neighbouring pixels, the last back to the first) that may enclose ``a_min`` px² or more. n steps
+    of at most √2 px are at most n √2 px long, and a closed curve of length L encloses at most L² / 4π
+    (the isoperimetric inequality, which bounds the shoelace sum of a self-crossing curve too): n² / 2π.
+    A textured image's thousands of specks of a few pixels are dropped before their points are gathered."""
+    n = lens.astype(np.float64)
+    return n * n >= 2.0 * np.pi * a_min * (1.0 - 1e-9)

@@ -134,3 +134,16 @@ def convex_contour_areas(points, starts, lens, a_min, a_max, min_convexity):  # 
         hull = _hull_area(x, y)
         convex[j] = hull > 0.0 and a / hull >= min_convexity
     return area, convex
+
+
+@njit(**_COMPILED)
+def darker_than_mean(src, mean, offset):  # pragma: no cover - compiled
+    """(H, W) uint8 mask, 255 where ``src[i, j] < mean[i, j] − offset`` ((H, W) float32 each, ``offset``
+    float32; the difference rounded to float32 as numpy's ``mean - offset`` is), else 0: the regions'
+    threshold in one pass, without the (H, W) float32 threshold image."""
+    h, w = src.shape
+    out = np.empty((h, w), np.uint8)
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = 255 if src[i, j] < np.float32(mean[i, j] - offset) else 0
+    return out

@@ -31,14 +31,15 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
     given, each window's number of regions (of any size and shape) is appended to it; means: when
     given, a store of this ``image``'s local means (float32, by polarity and window) that searches of
     the same image at other offsets fill and reuse (the same bits as made afresh: on a 12 MP image
-    each window's mean costs about 20 ms; the caller keeps one store per image).
+    each window's mean costs about 20 ms; the caller keeps one store per image, and only where it
+    searches the image again).
     """
     lo, hi = np.percentile(image[::4, ::4], (1, 99))
     offset = offset_fraction * max(float(hi - lo), 1.0)
-    means = {} if means is None else means
-    if (dark_dots, 0) not in means:
-        means[dark_dots, 0] = (image if dark_dots else cv2.bitwise_not(image)).astype(np.float32)
-    src = means[dark_dots, 0]
+    kept = {} if means is None else means  # without a store each window's mean is freed once used
+    if (dark_dots, 0) not in kept:
+        kept[dark_dots, 0] = (image if dark_dots else cv2.bitwise_not(image)).astype(np.float32)
+    src = kept[dark_dots, 0]
     a_min, a_max = np.pi * (d_min / 2) ** 2 * 0.6, np.pi * (d_max / 2) ** 2 * 1.4
     blocks = []
     block = 2 * d_min
@@ -47,9 +48,13 @@ def contour_candidates(image: np.ndarray, dark_dots: bool, d_min: float, d_max: 
         block *= 2
 
     def regions(k: int) -> np.ndarray:  # (N, 6) cu, cv, a, b, θ, area of one window's dot-like regions
-        if (dark_dots, k) not in means:
-            means[dark_dots, k] = cv2.blur(src, (k, k), borderType=cv2.BORDER_REFLECT)
-        mask = darker_than_mean(src, means[dark_dots, k], np.float32(offset))  # findContours takes any non-zero
+        mean = kept.get((dark_dots, k))
+        if mean is None:
+            mean = cv2.blur(src, (k, k), borderType=cv2.BORDER_REFLECT)
+            if means is not None:
+                kept[dark_dots, k] = mean
+        mask = darker_than_mean(src, mean, np.float32(offset))  # findContours takes any non-zero
+        del mean
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         if contour_counts is not None:
             contour_counts.append(len(contours))

@@ -221,9 +221,13 @@ class BandSearch:
         self._small: np.ndarray | None = None
         self._means: list[tuple[np.ndarray, dict]] = []  # (stretch image, its local means' store)
 
-    def means(self, pre: np.ndarray) -> dict:
+    def means(self, pre: np.ndarray) -> dict | None:
         """The store of local means of ``pre`` (one of the band's stretched images) for its region
-        searches at every offset (:func:`tasks.vision.detection.blobs.contour_candidates`' ``means``)."""
+        searches at every offset (:func:`tasks.vision.detection.blobs.contour_candidates`' ``means``);
+        None for a band the blur fallback does not search again (:data:`BLUR_BAND_DOT_PX`): its means
+        are freed window by window."""
+        if self.d_min > BLUR_BAND_DOT_PX:
+            return None
         for image, store in self._means:
             if image is pre:
                 return store

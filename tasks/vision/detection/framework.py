@@ -234,6 +234,10 @@ class BandSearch:
         self._means.append((pre, {}))
         return self._means[-1][1]
 
+    def release_means(self) -> None:
+        """Free the stores of :meth:`means` (at 12 MP up to four float32 images, about 190 MB)."""
+        self._means.clear()
+
     def small(self) -> np.ndarray:
         """The image downsampled by the band's factor (made once; its preprocessing is timed by the caller)."""
         if self._small is None:
@@ -673,6 +677,8 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     if not attempt.ok and expected_centres_px is None:
         band = next(b for b in bands if b.factor == attempt.factor)  # bands of one factor share the image
         attempt = looked_again(band.small(), attempt, plate, p, tm, **kw)
+    for band in bands:  # the coarse search is over: its stores of local means are not needed again
+        band.release_means()
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

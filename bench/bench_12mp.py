@@ -5,6 +5,7 @@
     .venv/bin/python bench/bench_12mp.py --stress               # also the stress set's 12 MP cases
     .venv/bin/python bench/bench_12mp.py --sizes 8,400 --tilts 50 --repeat 5
     .venv/bin/python bench/bench_12mp.py --sizes none --photos DIR [--photos DIR ...]   # large photographs only
+    .venv/bin/python bench/bench_12mp.py --sizes none --photos DIR --only p03 --threads 1 --repeat 9
 
 Images: ``tasks.simulation.detector_stress`` renders of a 4 × 3 sheet of Ø 4 mm dots in a 3024 × 4032
 colour JPEG (80), the envelope of ``bench/bench_stress.py --envelope`` at 12 MP: each dot size
@@ -23,7 +24,9 @@ is called once per image untimed (compiled kernels loaded; a fresh extract compi
 numba kernels, about a minute), then ``--repeat`` times interleaved, the one going first alternating;
 medians of the wall time (``time.perf_counter``) and of the process's CPU time (``time.process_time``,
 every thread) are kept. The host's 1-minute load average is printed before and after: the wall
-times count the waits for a core when other jobs run.
+times count the waits for a core when other jobs run, and the CPU times the threads that spin while
+they wait; ``--threads 1`` runs OpenCV and both codes' kernels on the calling thread, whose CPU time
+compares the codes on a busy host.
 
 Prints per image: found / refused for each code, their wall and CPU ms, the ratios baseline / this,
 the median and worst centre error against the renderer's truth (px, up to the grid's symmetry), and
@@ -46,6 +49,7 @@ from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -56,15 +60,17 @@ from bench_real_photos import photographs
 from tasks.machine.plate import DotPlate
 from tasks.simulation.detector_stress import STRESS_CASES, StressCase, errors_up_to_symmetry, render_stress_case
 from tasks.vision.detection import detect_grid
+from tasks.vision.detection.parallel import set_kernel_threads
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_S = 0.5
 
 
-def load_baseline(ref: str, folder: Path):
+def load_baseline(ref: str, folder: Path, kernel_threads: int | None = None):
     """``detect_grid`` of the ``tasks`` package at git ref ``ref`` (extracted into ``folder``), imported
     beside this code's: this code's ``tasks`` modules are set aside while the baseline's load, then
-    put back, so each keeps its own."""
+    put back, so each keeps its own. ``kernel_threads``: the baseline's compiled kernels' threads
+    (``parallel.set_kernel_threads``; None: its default)."""
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "tasks"], check=True, capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
     ours = {k: v for k, v in sys.modules.items() if k == "tasks" or k.startswith("tasks.")}
@@ -73,6 +79,8 @@ def load_baseline(ref: str, folder: Path):
     sys.path.insert(0, str(folder))
     try:
         fn = importlib.import_module("tasks.vision.detection").detect_grid
+        if kernel_threads is not None:
+            importlib.import_module("tasks.vision.detection.parallel").set_kernel_threads(kernel_threads)
     finally:
         sys.path.remove(str(folder))
         for k in [k for k in sys.modules if k == "tasks" or k.startswith("tasks.")]:
@@ -122,16 +130,26 @@ def main() -> None:
     ap.add_argument("--min-mp", type=float, default=8.0, help="with --photos: the photographs of at least this "
                                                                 "many megapixels (default 8)")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--only", default="", help="only the images whose name contains this")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="OpenCV's threads and both codes' kernel threads (default: theirs; 1: CPU time "
+                         "without threads waiting for a core on a busy host)")
     args = ap.parse_args()
+    if args.threads is not None:
+        cv2.setNumThreads(args.threads)
+        set_kernel_threads(args.threads)
     cases = [] if args.sizes == "none" else envelope_cases([float(x) for x in args.sizes.split(",")],
                                                            [float(x) for x in args.tilts.split(",")])
     if args.stress:
         cases += [c for c in STRESS_CASES if (c.width, c.height) == (3024, 4032)]
-    images = itertools.chain(rendered(cases), large_photographs(args.photos, args.min_mp))
+    cases = [c for c in cases if args.only in c.name]
+    images = itertools.chain(rendered(cases), (i for i in large_photographs(args.photos, args.min_mp)
+                                                if args.only in i[0]))
     tmp = tempfile.TemporaryDirectory(prefix="bench12mp-")
-    codes = {"base": load_baseline(args.baseline, Path(tmp.name)), "this": detect_grid}
+    codes = {"base": load_baseline(args.baseline, Path(tmp.name), args.threads), "this": detect_grid}
     photos = f", photographs of {args.min_mp:g} MP and more in {', '.join(map(str, args.photos))}" * bool(args.photos)
-    print(f"baseline {args.baseline}, {len(cases)} renders 3024x4032{photos}, {args.repeat} repeats; "
+    threads = f"; {args.threads} thread(s)" if args.threads is not None else ""
+    print(f"baseline {args.baseline}, {len(cases)} renders 3024x4032{photos}, {args.repeat} repeats{threads}; "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs", flush=True)
     print(f"{'case':34s} {'base: found wall/cpu ms':>25s} {'this: found wall/cpu ms':>25s} {'ratio wall/cpu':>15s} "
           f"{'error med/worst px, base | this':>33s} same")

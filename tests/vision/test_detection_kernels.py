@@ -21,7 +21,7 @@ from tasks.vision.detection.chain_kernels import screen_contours
 from tasks.vision.detection.chaincode import FREEMAN_CODE, chain_codes, filter_edges
 from tasks.vision.detection.edges import N_DIRECTIONS, canny_edges
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
-from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas
+from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas, darker_than_mean
 from tasks.vision.detection.rrht import local_maxima
 
 
@@ -268,6 +268,68 @@ def test_convex_contour_areas_decide_as_the_hull_area_does():
             assert got_area.tobytes() == area.tobytes() and np.array_equal(convex, want)
             counts += want.sum(), np.isfinite(area).sum() - want.sum()
     assert (counts > 50).all()  # both answers, many times
+
+
+def test_octagon_lies_in_the_hull_and_the_box_is_the_bounding_boxs():
+    from tasks.vision.detection.region_kernels import _octagon_and_box
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        pts = rng.integers(0, 40, (int(rng.integers(3, 30)), 2)).astype(float)
+        octagon, box = _octagon_and_box(pts[:, 0].copy(), pts[:, 1].copy())
+        hull = cv2.contourArea(cv2.convexHull(pts.astype(np.float32)))
+        assert octagon <= hull + 1e-9 and box == np.ptp(pts[:, 0]) * np.ptp(pts[:, 1]) >= hull - 1e-9
+    square = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]])  # every extreme point a corner
+    assert _octagon_and_box(square[:, 0].copy(), square[:, 1].copy()) == (16.0, 16.0)
+
+
+def test_darker_than_mean_is_opencvs_compare_against_the_mean_less_the_offset():
+    rng = np.random.default_rng(5)
+    src = cv2.GaussianBlur(rng.integers(0, 256, (181, 243)).astype(np.uint8), (0, 0), 1.2).astype(np.float32)
+    for k, offset in ((7, 3.7), (31, 0.8), (63, 12.25)):
+        mean = cv2.blur(src, (k, k), borderType=cv2.BORDER_REFLECT)
+        threshold = mean.copy()
+        threshold -= offset  # the numpy form: in place, float32
+        want = cv2.compare(src, threshold, cv2.CMP_LT)
+        got = darker_than_mean(src, mean, np.float32(offset))
+        assert got.dtype == np.uint8 and np.array_equal(got, want)
+        assert 0.05 < (got > 0).mean() < 0.6
+
+
+def test_contours_too_short_to_enclose_the_smallest_area_enclose_less():
+    """blobs.can_enclose drops contours of n points only when n² / 2π < a_min, which the isoperimetric
+    bound says they cannot reach: every dropped contour's area is below a_min, on specks and on thin,
+    self-retracing regions (lines one pixel wide)."""
+    rng = np.random.default_rng(8)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (300, 400)).astype(np.uint8), (0, 0), 0.8)
+    cv2.line(img, (20, 280), (380, 270), 0, 1)
+    cv2.circle(img, (200, 150), 9, 0, -1)
+    contours, _ = cv2.findContours((img < 100).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    lens = np.array([len(c) for c in contours])
+    area = np.array([cv2.contourArea(c) for c in contours])
+    for a_min in (4.0, 17.0, 60.0):
+        kept = blobs.can_enclose(lens, a_min)
+        assert (area[~kept] < a_min).all() and (~kept).sum() > 100
+        assert kept[area >= a_min].all()
+    area, convex = blobs._convex_areas(contours, 17.0, 1e9, 0.9)  # the kept ones measured as before
+    want_area, want_convex = convex_contour_areas(
+        np.concatenate(contours).reshape(-1, 2).astype(float), np.concatenate([[0], np.cumsum(lens)[:-1]]), lens,
+        17.0, 1e9, 0.9)
+    assert area.tobytes() == want_area.tobytes() and np.array_equal(convex, want_convex) and convex.sum() >= 1
+
+
+def test_region_search_with_a_store_of_means_gives_the_same_candidates():
+    rng = np.random.default_rng(9)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (240, 320)).astype(np.uint8), (0, 0), 1.0)
+    for u, v in rng.uniform((20, 20), (300, 220), (25, 2)):
+        cv2.circle(img, (int(u), int(v)), 6, 20, -1)
+    store: dict = {}
+    for offset in (0.08, 0.04, 0.02):
+        want = blobs.contour_candidates(img, True, 6.0, 30.0, offset)
+        got = blobs.contour_candidates(img, True, 6.0, 30.0, offset, means=store)
+        assert len(want) > 10
+        for name in ("centres", "axes", "theta", "votes"):
+            assert getattr(got, name).tobytes() == getattr(want, name).tobytes()
+    assert sorted(k for _, k in store) == [0, 13, 25, 49, 97]  # the image and one mean per window, made once
 
 
 def _filter_edges_numpy(edges, d_min_px, d_max_px, min_distinct=6, max_code_fraction=0.4, max_aspect=4.0):

@@ -164,6 +164,14 @@ class CoarseAttempt:
             return -1
         return int(np.prod(self.order.lattice_shape))
 
+    @property
+    def holds_bigger_grid(self) -> bool:
+        """The lattice holds two complete windows of the plate or more (:attr:`GridOrder.bigger_grid`): the
+        dots of a larger grid, refused as "extra dots"; neither fainter candidates, nor their sizes scaled
+        for blur, nor a place looked at again, nor a search on a log scale (on which dots stay dots)
+        removes a dot, so those searches are not made for it."""
+        return self.order is not None and self.order.bigger_grid
+
     def plate_likeness(self, plate: DotPlate) -> tuple[int, float, int]:
         """How likely this band's lattice is the plate's, for choosing which refusal to report when
         every band refuses: the most of its points in one window of the plate's shape, then how near
@@ -212,6 +220,24 @@ class BandSearch:
         self._hough: list[CoarseAttempt] = []
         self._n_stretches: int | None = None  # known once the first stretch is searched
         self._small: np.ndarray | None = None
+        self._means: list[tuple[np.ndarray, dict]] = []  # (stretch image, its local means' store)
+
+    def means(self, pre: np.ndarray) -> dict | None:
+        """The store of local means of ``pre`` (one of the band's stretched images) for its region
+        searches at every offset (:func:`tasks.vision.detection.blobs.contour_candidates`' ``means``);
+        None for a band the blur fallback does not search again (:data:`BLUR_BAND_DOT_PX`): its means
+        are freed window by window."""
+        if self.d_min > BLUR_BAND_DOT_PX:
+            return None
+        for image, store in self._means:
+            if image is pre:
+                return store
+        self._means.append((pre, {}))
+        return self._means[-1][1]
+
+    def release_means(self) -> None:
+        """Free the stores of :meth:`means` (at 12 MP up to four float32 images, about 190 MB)."""
+        self._means.clear()
 
     def small(self) -> np.ndarray:
         """The image downsampled by the band's factor (made once; its preprocessing is timed by the caller)."""
@@ -252,7 +278,8 @@ class BandSearch:
         """The band's result: each stretch's attempt with region contours where its circles give no
         grid; of two grids found, the one whose spacing over its dots' size is nearer the plate's."""
         done = [a if a.ok or not self.p.contour_fallback else
-                with_regions(a, self.plate, self.d_min, self.d_max, self.p, self.tm, **self.kw) for a in self.hough()]
+                with_regions(a, self.plate, self.d_min, self.d_max, self.p, self.tm, self.means(a.image), **self.kw)
+                for a in self.hough()]
         if len(done) == 1:
             return done[0]
         attempt, retry = done
@@ -304,13 +331,14 @@ def hough_attempt(pre: np.ndarray, plate: DotPlate, factor: int, d_min: float, d
 
 
 def with_regions(attempt: CoarseAttempt, plate: DotPlate, d_min: float, d_max: float, p: FrameworkParams, tm: dict,
-                 **kw) -> CoarseAttempt:
+                 means: dict | None = None, **kw) -> CoarseAttempt:
     """``attempt`` (the Hough circles' of a band, which give no grid) with the dark (light) regions of
-    d_min…d_max full-size px of its coarse image added (:mod:`tasks.vision.detection.blobs`)."""
+    d_min…d_max full-size px of its coarse image added (:mod:`tasks.vision.detection.blobs`; ``means``:
+    the image's store of local means, :meth:`BandSearch.means`)."""
     pre, factor, circles, levels = attempt.image, attempt.factor, attempt.circles, attempt.levels
     t4 = time.perf_counter()
-    blobs, blob_levels = verified(pre, contour_candidates(pre, plate.dark_dots, d_min / factor, d_max / factor),
-                                  plate.dark_dots, p)
+    regions = contour_candidates(pre, plate.dark_dots, d_min / factor, d_max / factor, means=means)
+    blobs, blob_levels = verified(pre, regions, plate.dark_dots, p)
     merged, added = merge_candidates(circles, blobs)
     tm["contours"] = tm.get("contours", 0.0) + time.perf_counter() - t4
     if len(merged) == len(circles):
@@ -426,14 +454,14 @@ def shrunk_by_blur(searched: list[tuple[CoarseAttempt, BandSearch]], plate: DotP
     dots, :data:`BLUR_BAND_DOT_PX`), then the offsets (none fainter once a window is texture,
     :data:`FAINT_TEXTURE_DENSITY`), then the factors from the smallest."""
     for a, band in searched:
-        if a.levels is None or a.image is None or band.d_min > BLUR_BAND_DOT_PX:
+        if a.levels is None or a.image is None or band.d_min > BLUR_BAND_DOT_PX or a.holds_bigger_grid:
             continue
         for offset in FAINT_REGION_OFFSETS:
             t0 = time.perf_counter()
             counts: list[int] = []
             d_min = band.d_min / a.factor
             regions = contour_candidates(a.image, plate.dark_dots, d_min, band.d_max / a.factor, offset,
-                                         contour_counts=counts)
+                                         contour_counts=counts, means=band.means(a.image))
             faint, faint_levels = verified(a.image, regions, plate.dark_dots, p)
             c, added = merge_candidates(a.circles, faint)
             levels = np.concatenate([a.levels, faint_levels[added]])
@@ -500,7 +528,10 @@ def looked_again(small: np.ndarray, attempt: CoarseAttempt, plate: DotPlate, p: 
     """The grid from the missing places of a refused ``attempt``'s lattice (:func:`complete_window`), else
     from ``attempt`` searched again on a log scale (:func:`on_log_scale`) or that search's missing
     places; else the more plate-like refusal. ``small``: as :func:`on_log_scale`'s; ``kw``:
-    :func:`ordered_attempt`'s, without predicted dot positions."""
+    :func:`ordered_attempt`'s, without predicted dot positions. A lattice that holds a bigger grid
+    (:attr:`CoarseAttempt.holds_bigger_grid`) is not looked at again."""
+    if attempt.holds_bigger_grid:
+        return attempt
     looks = dict(expected_rotation_deg=kw["expected_rotation_deg"], mirrored=kw["mirrored"])
     completed = complete_window(attempt, plate, p, tm, **looks)
     if completed is not None:
@@ -647,6 +678,8 @@ def detect_rrht(image: np.ndarray, plate: DotPlate, *, expected_rotation_deg: fl
     if not attempt.ok and expected_centres_px is None:
         band = next(b for b in bands if b.factor == attempt.factor)  # bands of one factor share the image
         attempt = looked_again(band.small(), attempt, plate, p, tm, **kw)
+    for band in bands:  # the coarse search is over: its stores of local means are not needed again
+        band.release_means()
     circles, order, factor = attempt.circles, attempt.order, attempt.factor
     cand_uv, cand_d = attempt.candidates_full()
     debug = {"n_candidates": len(circles), "candidates_px": cand_uv, "candidate_diameters_px": cand_d}

@@ -340,7 +340,7 @@ def order_grid(points: np.ndarray, plate: DotPlate, *, sizes: np.ndarray | None 
     if len(windows) > 1:
         return fail_order(plate, f"extra dots: {shape_txt} lattice holds {len(windows)} complete "
                                  f"{rows}x{cols} windows; which one is the plate is ambiguous", (hh, ww), (sel, g),
-                          window_dots=need)
+                          window_dots=need, complete_windows=len(windows))
     h, w, a0, b0 = windows[0]
     strays = len(sel) - need
     limit = extra_dot_limit(rows, cols)

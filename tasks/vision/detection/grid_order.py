@@ -29,16 +29,24 @@ class GridOrder:
     lattice_index: np.ndarray | None = None  # (L,) the input points of that lattice (on a refusal, for a drawing)
     lattice_coords: np.ndarray | None = None  # (L, 2) int their lattice coordinates
     window_dots: int = -1  # the most points of the lattice in one rows × cols window (-1: not counted)
+    complete_windows: int = -1  # the complete rows × cols windows the lattice holds (-1: not counted)
+
+    @property
+    def bigger_grid(self) -> bool:
+        """The lattice holds two complete windows or more: the dots of a grid larger than the plate, which
+        more candidates of any kind cannot make one window."""
+        return self.complete_windows > 1
 
 
 def fail_order(plate: DotPlate, reason: str, shape=(0, 0), lattice: tuple[np.ndarray, np.ndarray] | None = None,
-               window_dots: int = -1) -> GridOrder:
+               window_dots: int = -1, complete_windows: int = -1) -> GridOrder:
     """A failed ordering of ``plate`` with its reason; ``shape`` is the lattice found, ``lattice`` its
     points (L,) (indices of the input points) and their coordinates (L, 2); ``window_dots`` the most
-    of its points in one window of the plate's shape."""
+    of its points in one window of the plate's shape, ``complete_windows`` its complete windows."""
     index, coords = lattice if lattice is not None else (None, None)
     return GridOrder(False, reason, np.full(plate.rows * plate.cols, -1), lattice_shape=shape,
-                     lattice_index=index, lattice_coords=coords, window_dots=window_dots)
+                     lattice_index=index, lattice_coords=coords, window_dots=window_dots,
+                     complete_windows=complete_windows)
 
 
 def lattice_steps(points_px: np.ndarray, row_col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -85,21 +85,37 @@ def contour_areas(points, starts, lens, a_min, a_max):  # pragma: no cover - com
 
 
 @njit(**_COMPILED)
-def _octagon_area(x, y):  # pragma: no cover - compiled
-    """Area of the polygon through the points (x, y) furthest along +u, +u+v, +v, −u+v, −u, −u−v, −v
-    and +u−v, in that order: each lies on the convex hull, in the hull's order, so the polygon lies
-    inside the hull and its area is at most the hull's (exact for integer coordinates)."""
-    cu = np.array([1.0, 1.0, 0.0, -1.0, -1.0, -1.0, 0.0, 1.0])
-    cv = np.array([0.0, 1.0, 1.0, 1.0, 0.0, -1.0, -1.0, -1.0])
-    best = np.full(8, -np.inf)
-    ox = np.zeros(8)
-    oy = np.zeros(8)
+def _octagon_and_box(x, y):  # pragma: no cover - compiled
+    """(octagon, box) areas of the points (x, y). The octagon: the polygon through the points furthest
+    along +u, +u+v, +v, −u+v, −u, −u−v, −v and +u−v, in that order (of points equally far, the first):
+    each lies on the convex hull, in the hull's order, so the polygon lies inside the hull and its area
+    is at most the hull's (exact for integer coordinates). The box: their bounding box's,
+    (max u − min u)(max v − min v), at least the hull's. Eight running maxima in scalars: called once
+    per contour, no arrays made."""
+    b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = -np.inf
+    x0 = y0 = x1 = y1 = x2 = y2 = x3 = y3 = x4 = y4 = x5 = y5 = x6 = y6 = x7 = y7 = 0.0
     for i in range(x.shape[0]):
-        for k in range(8):
-            s = cu[k] * x[i] + cv[k] * y[i]
-            if s > best[k]:
-                best[k], ox[k], oy[k] = s, x[i], y[i]
-    return _shoelace(ox, oy)
+        u, v = x[i], y[i]
+        if u > b0:
+            b0, x0, y0 = u, u, v
+        if u + v > b1:
+            b1, x1, y1 = u + v, u, v
+        if v > b2:
+            b2, x2, y2 = v, u, v
+        if v - u > b3:
+            b3, x3, y3 = v - u, u, v
+        if -u > b4:
+            b4, x4, y4 = -u, u, v
+        if -u - v > b5:
+            b5, x5, y5 = -u - v, u, v
+        if -v > b6:
+            b6, x6, y6 = -v, u, v
+        if u - v > b7:
+            b7, x7, y7 = u - v, u, v
+    # the shoelace sum of the eight points (integers: exact in any order)
+    s = (x7 * y0 - y7 * x0) + (x0 * y1 - y0 * x1) + (x1 * y2 - y1 * x2) + (x2 * y3 - y2 * x3) \
+        + (x3 * y4 - y3 * x4) + (x4 * y5 - y4 * x5) + (x5 * y6 - y5 * x6) + (x6 * y7 - y6 * x7)
+    return abs(0.5 * s), (b0 + b4) * (b2 + b6)
 
 
 @njit(**_COMPILED)
@@ -108,8 +124,8 @@ def convex_contour_areas(points, starts, lens, a_min, a_max, min_convexity):  # 
     ``convex`` is ``(hull > 0) & (area / hull >= min_convexity)`` with the hull area of
     :func:`contour_areas`, to the same bit, the hull computed only where cheaper bounds leave the
     answer open: the hull holds the polygon of the extreme points along eight directions
-    (:func:`_octagon_area` ≤ hull) and lies within the points' bounding box (hull ≤ box), and IEEE
-    division is monotonic, so area / octagon < min_convexity means not convex and area / box ≥
+    (:func:`_octagon_and_box`'s octagon ≤ hull) and lies within the points' bounding box (hull ≤ box),
+    and IEEE division is monotonic, so area / octagon < min_convexity means not convex and area / box ≥
     min_convexity (octagon > 0) convex. A textured photograph's thousands of ragged regions are
     refused by the first bound without sorting their points."""
     n = starts.shape[0]
@@ -124,13 +140,25 @@ def convex_contour_areas(points, starts, lens, a_min, a_max, min_convexity):  # 
         if a < a_min or a > a_max:
             continue
         area[j] = a
-        low = _octagon_area(x, y)
+        low, box = _octagon_and_box(x, y)
         if low > 0.0 and a / low < min_convexity:
             continue
-        box = (x.max() - x.min()) * (y.max() - y.min())
         if low > 0.0 and a / box >= min_convexity:
             convex[j] = True
             continue
         hull = _hull_area(x, y)
         convex[j] = hull > 0.0 and a / hull >= min_convexity
     return area, convex
+
+
+@njit(**_COMPILED)
+def darker_than_mean(src, mean, offset):  # pragma: no cover - compiled
+    """(H, W) uint8 mask, 255 where ``src[i, j] < mean[i, j] − offset`` ((H, W) float32 each, ``offset``
+    float32; the difference rounded to float32 as numpy's ``mean - offset`` is), else 0: the regions'
+    threshold in one pass, without the (H, W) float32 threshold image."""
+    h, w = src.shape
+    out = np.empty((h, w), np.uint8)
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = 255 if src[i, j] < np.float32(mean[i, j] - offset) else 0
+    return out

@@ -20,11 +20,11 @@ Units: px of the full-size image, grey levels of the profiles; angles rad from +
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.special import chndtr
+from scipy.special import chndtr, ndtr
 
 N_NEIGHBOURS = 8  # the nearest other dots modelled per dot: a lattice's 8 surrounding ones
 
@@ -70,46 +70,60 @@ def within_reach(dots: DotRims, reach_px: np.ndarray) -> np.ndarray:
 
 def neighbour_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(K, R, T) grey levels the other blurred printed dots add at the samples of K dots' rays
-    (an ellipse blurred as the disc of its radius towards each sample, :func:`disc_fill`).
+    (:func:`ellipse_fill`).
 
     own: (K,) index of each ray origin's dot in ``dots`` (left out of its own model); cen: (K, 2) px
     ray origins; ang: (R,) ray angles; t: (K, R, T) px along the rays. Only the
     :data:`N_NEIGHBOURS` nearest other dots are modelled; dots whose fit is not finite are left out.
     """
-    k = len(own)
     out = np.zeros(t.shape, np.float32)
-    usable = np.isfinite(dots.centres).all(axis=1) & np.isfinite(dots.axes).all(axis=1) & np.isfinite(dots.sigma)
-    usable &= np.isfinite(dots.level_in) & np.isfinite(dots.level_out)
-    pool = np.flatnonzero(usable)
-    if k == 0 or len(pool) < 2:
+    dots = replace(dots, sigma=np.where(np.isfinite(dots.level_in) & np.isfinite(dots.level_out), dots.sigma, np.nan))
+    if len(own) == 0 or np.isfinite(dots.sigma).sum() < 2:
         return out
-    n_q = min(N_NEIGHBOURS + 1, len(pool))
-    _, near = cKDTree(dots.centres[pool]).query(cen, k=n_q)
-    near = pool[np.asarray(near).reshape(k, n_q)]  # (K, Q)
     u = cen[:, 0, None, None] + np.cos(ang)[None, :, None] * t  # (K, R, T)
     v = cen[:, 1, None, None] + np.sin(ang)[None, :, None] * t
-    for q in range(n_q):
-        j = near[:, q]
-        other = j != own
-        if not other.any():
-            continue
-        shift = (dots.level_in[j] - dots.level_out[j])[:, None, None] * _fill_of(dots, j, u, v)
-        out += np.where(other[:, None, None], shift, 0.0).astype(np.float32)
+    for j, rho, rim, radius, sig in _fill_terms(dots, u, v):
+        other = (j != own)[:, None, None]
+        fill = disc_fill(np.maximum(radius + rho - rim, 0.0), radius, sig)
+        out += np.where(other, (dots.level_in[j] - dots.level_out[j])[:, None, None] * fill, 0.0).astype(np.float32)
     return out
 
 
 def disc_fill(rho: np.ndarray, radius: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """The fraction of a disc's level at distance ``rho`` px from its centre once blurred by a Gaussian
     of ``sigma`` px (radius ``radius`` px; arrays broadcast): P(|X| < R) for X ~ N(ρ, σ² I₂), the
-    non-central χ² distribution of 2 degrees of freedom at R²/σ² with non-centrality ρ²/σ².
-    Near the rim of a large disc it tends to Φ(−(ρ − R)/σ − σ/(2R)), a blurred edge moved inwards
-    by its curvature."""
-    s2 = np.maximum(sigma, 1e-3) ** 2
-    return chndtr(radius**2 / s2, 2.0, rho**2 / s2)
+    non-central χ² distribution of 2 degrees of freedom at R²/σ² with non-centrality ρ²/σ². Read
+    bilinearly from a table of it over R/σ < 10 (steps of 0.05 σ: within 2e-4); for larger discs
+    Φ((R − ρ)/σ − σ/(2R)), a blurred edge moved inwards by its curvature (within 7e-4)."""
+    s = np.maximum(sigma, 1e-3)
+    rs, ps = np.broadcast_arrays(np.asarray(radius / s, dtype=float), np.asarray(rho / s, dtype=float))
+    table = _disc_table()
+    i = np.clip(rs, 0.0, _TABLE_R) / _TABLE_STEP
+    j = np.clip(ps, 0.0, _TABLE_RHO) / _TABLE_STEP
+    i0 = np.minimum(i.astype(np.int64), table.shape[0] - 2)
+    j0 = np.minimum(j.astype(np.int64), table.shape[1] - 2)
+    fi, fj = i - i0, j - j0
+    near = ((table[i0, j0] * (1 - fj) + table[i0, j0 + 1] * fj) * (1 - fi)
+            + (table[i0 + 1, j0] * (1 - fj) + table[i0 + 1, j0 + 1] * fj) * fi)
+    far = ndtr(rs - ps - 0.5 / np.maximum(rs, 1e-9))
+    return np.where(rs < _TABLE_R, near, far)
+
+
+_TABLE_R, _TABLE_RHO, _TABLE_STEP = 10.0, 20.0, 0.05  # R/σ and ρ/σ of the table (beyond ρ/σ 20 a disc adds < 1e-9)
+_TABLES: list[np.ndarray] = []
+
+
+def _disc_table() -> np.ndarray:
+    """The table of :func:`disc_fill` over R/σ and ρ/σ (made on first use, 0.03 s)."""
+    if not _TABLES:
+        r = np.arange(0.0, _TABLE_R + 2 * _TABLE_STEP, _TABLE_STEP)
+        rho = np.arange(0.0, _TABLE_RHO + 2 * _TABLE_STEP, _TABLE_STEP)
+        _TABLES.append(chndtr((r**2)[:, None], 2.0, (rho**2)[None, :]))
+    return _TABLES[0]
 
 
 def fit_printed_dots(dots: DotRims, near: np.ndarray, prof: np.ndarray, ang: np.ndarray, t: np.ndarray,
-                     use: np.ndarray, iterations: int = 6) -> DotRims:
+                     use: np.ndarray, iterations: int = 4) -> DotRims:
     """The blurred printed dots that the rays of the dots ``near`` see, fitted to them jointly: one ink
     level a and one plate level b, one blur scale g and one rim scale κ, each dot j a printed ellipse
     of κ × its fitted semi-axes blurred by g × its fitted rim blur (``dots.sigma``):
@@ -134,10 +148,14 @@ def fit_printed_dots(dots: DotRims, near: np.ndarray, prof: np.ndarray, ang: np.
     u = cen[:, 0, None, None] + np.cos(ang)[None, :, None] * t
     v = cen[:, 1, None, None] + np.sin(ang)[None, :, None] * t
 
+    terms = _fill_terms(dots, u, v)
+
     def fill(p):  # Σ_j F at the samples (K, R, T) for p = (ln g, ln κ), the dot itself included
-        unit = DotRims(dots.centres, dots.axes * np.exp(p[1]), dots.theta, dots.sigma * np.exp(p[0]),
-                       np.ones(len(dots.centres)), np.zeros(len(dots.centres)))
-        return _fills(unit, u, v)
+        g, kappa = np.exp(p)
+        out = np.zeros(u.shape)
+        for _, rho, rim, radius, sig in terms:  # κ scales the rim's distance and its curvature radius alike
+            out += disc_fill(np.maximum(kappa * (radius - rim) + rho, 0.0), kappa * radius, g * sig)
+        return out
 
     def levels(f):  # (a, b, gains (K,), cost): y ≈ g_k (b + (a − b) f), the gains' median 1
         g = np.ones(len(near))
@@ -179,27 +197,28 @@ def fit_printed_dots(dots: DotRims, near: np.ndarray, prof: np.ndarray, ang: np.
     return DotRims(dots.centres, dots.axes * np.exp(p[1]), dots.theta, dots.sigma * np.exp(p[0]), gain * a, gain * b)
 
 
-def _fills(dots: DotRims, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Σ_j F (K, R, T) of the dots ``dots`` (each of level 1 on 0; those with a non-finite ellipse or blur
-    left out) at the points (u, v) (K, R, T) px: the :data:`N_NEIGHBOURS` + 1 nearest to each ray's first
-    sample."""
+def _fill_terms(dots: DotRims, u: np.ndarray, v: np.ndarray) -> list[tuple[np.ndarray, ...]]:
+    """The geometry of :func:`ellipse_fill` for the dots near the points (u, v) (K, R, T) px: per term
+    (the dots j (K,), then ρ, the rim's distance R, the disc radius √(ρ_c R) and σ, each (K, R, T)), for the
+    :data:`N_NEIGHBOURS` + 1 dots nearest each ray's first sample (dots with a non-finite ellipse or blur
+    left out), the terms no sample comes within 8 σ of left out."""
     k = u.shape[0]
     pool = np.flatnonzero(np.isfinite(dots.centres).all(axis=1) & np.isfinite(dots.axes).all(axis=1)
                           & np.isfinite(dots.sigma))
     n_q = min(N_NEIGHBOURS + 1, len(pool))
     _, near = cKDTree(dots.centres[pool]).query(np.stack([u[:, 0, 0], v[:, 0, 0]], axis=1), k=n_q)
     near = pool[np.asarray(near).reshape(k, n_q)]
-    out = np.zeros(u.shape)
+    terms = []
     for q in range(n_q):
-        out += _fill_of(dots, near[:, q], u, v)
-    return out
-
-
-def _fill_of(dots: DotRims, j: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(K, R, T) the fraction of dot j[k]'s level (:func:`ellipse_fill`) at the points (u, v) (K, R, T) px."""
-    return ellipse_fill(u - dots.centres[j, 0, None, None], v - dots.centres[j, 1, None, None],
-                        dots.axes[j, 0, None, None], dots.axes[j, 1, None, None], dots.theta[j, None, None],
-                        dots.sigma[j, None, None])
+        j = near[:, q]
+        c, s = np.cos(dots.theta[j])[:, None, None], np.sin(dots.theta[j])[:, None, None]
+        du, dv = u - dots.centres[j, 0, None, None], v - dots.centres[j, 1, None, None]
+        x, y = du * c + dv * s, -du * s + dv * c
+        rho, rim, radius = _rim_geometry(x, y, dots.axes[j, 0, None, None], dots.axes[j, 1, None, None])
+        sig = np.broadcast_to(dots.sigma[j, None, None], u.shape)
+        if ((rho - rim) < 8.0 * sig).any():
+            terms.append((j, rho, rim, radius, sig))
+    return terms
 
 
 def ellipse_fill(du: np.ndarray, dv: np.ndarray, a: np.ndarray, b: np.ndarray, theta: np.ndarray,
@@ -214,11 +233,16 @@ def ellipse_fill(du: np.ndarray, dv: np.ndarray, a: np.ndarray, b: np.ndarray, t
     0.67–0.77 (σ 2–4 px, 4–7 px semi-axes, supersampled renders) by up to 7 % of their level, ρ_c by
     6 %, √(ρ_c R) by 3 %."""
     c, s = np.cos(theta), np.sin(theta)
-    x, y = du * c + dv * s, -du * s + dv * c
+    rho, rim, radius = _rim_geometry(du * c + dv * s, -du * s + dv * c, a, b)
+    return disc_fill(np.maximum(radius + rho - rim, 0.0), radius, sigma)
+
+
+def _rim_geometry(x, y, a, b):
+    """(ρ, R, √(ρ_c R)) px of points (x, y) px in an ellipse's frame (semi-axes a, b along x, y): their
+    distance from its centre, the rim's on the same line, and the disc radius of :func:`ellipse_fill`."""
     rho = np.hypot(x, y)
     q = np.hypot(x / a, y / b)
-    rim = np.where(q > 1e-9, rho / np.maximum(q, 1e-9), b)  # the rim's distance from the centre towards the point
+    rim = np.where(q > 1e-9, rho / np.maximum(q, 1e-9), b)
     tpar = np.arctan2(a * y, b * x)  # the rim point's parametric angle (x = a cos, y = b sin)
     curv = (a**2 * np.sin(tpar) ** 2 + b**2 * np.cos(tpar) ** 2) ** 1.5 / (a * b)
-    radius = np.sqrt(curv * rim)
-    return disc_fill(np.maximum(radius + rho - rim, 0.0), radius, sigma)
+    return rho, rim, np.sqrt(curv * rim)

@@ -100,7 +100,7 @@ class SubpixelParams:
     # contrast, are fitted again (up to neighbour_iterations times) with it taken out (neighbour_rims)
     neighbour_iterations: int = 2
     neighbour_min_shift: float = 0.02
-    neighbour_model_rounds: int = 4  # per refit: printed-dot fits alternating with their neighbours' tails
+    neighbour_model_rounds: int = 1  # per refit: printed-dot fits alternating with their neighbours' tails
     far_edges: bool = True  # and edges beyond the printed dots (the sheet's) taken out too (_far_edges) …
     far_edge_contrast: float = 0.1  # … where they step by more than this fraction of the dots' contrast
     pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.vision.detection.edge_fit)
@@ -674,8 +674,9 @@ def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p):
             if p.flat_field and len(near) >= 3:
                 gain = fit_gain_field(prof - shift, t, use, cen[near], ang)
             flat = flatten_profiles(prof, t, cen[near], ang, gain) if p.flat_field else prof
+            every = slice(None, None, 2)  # half the rays: the levels, blurs and rim scales hardly need more
             fitted = fit_printed_dots(DotRims(cen, np.where(ok[:, None], axs, np.nan), ths, s_med, lev_in, lev_out),
-                                      near, flat, ang, t, use)
+                                      near, flat[:, every], ang[every], t[:, every], use[:, every])
             if not sign * (fitted.level_out[0] - fitted.level_in[0]) > 0:
                 break
             model = DotRims(fitted.centres, fitted.axes, fitted.theta, fitted.sigma,

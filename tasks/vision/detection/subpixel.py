@@ -28,8 +28,10 @@ contours:
   a log scale, where the shadow's edge is a smaller step than the rim on either side of it
   (:func:`lit_spread`, :func:`shadow_suspects`, :func:`log_levels`).
 * neighbours: where a dot's rays reach a neighbour's blurred rim (a blur as wide as the gap between
-  the dots), the neighbours' rims are modelled from their fits and taken out of the profiles, and
-  the dot is fitted again (:mod:`tasks.vision.detection.neighbour_rims`).
+  the dots), the neighbours are modelled as blurred printed ellipses fitted to the reached dots' rays
+  together, the gain field is fitted again without their tails, edges beyond the dots (the sheet's)
+  are fitted beyond the windows, all are taken out of the profiles, and the dot is fitted again
+  (:func:`_neighbour_refits`, :mod:`tasks.vision.detection.neighbour_rims`).
 
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
@@ -648,12 +650,14 @@ def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p):
     semi-axes, angles, fitted, residual RMS, support, median rim blur, levels inside and outside the
     rim), updated in place; sigma: (K,) pass-1 blur px; gain: the image's gain field.
 
-    Each pass samples the reached dots' rays, fits the blurred printed dot to them
-    (:func:`~tasks.vision.detection.neighbour_rims.fit_printed_dots`, with the neighbours' current
-    model taken out) to model each as a neighbour, refits the gain field to the rays' ends without the
-    neighbours (else its smooth field takes up part of their tails and the model takes them out twice),
-    and fits the rims again. Dots not reached, or whose printed fit fails, are modelled from their
-    step fits (ink and plate levels, rim blur and rim ellipse)."""
+    Each pass samples the reached dots' rays and, ``p.neighbour_model_rounds`` times, refits the gain
+    field to the rays' ends without the neighbours' tails (else its smooth field takes up part of them
+    and the model takes them out twice) and the blurred printed dots to every reached dot's rays at once
+    (:func:`~tasks.vision.detection.neighbour_rims.fit_printed_dots`: one ink and one plate level, one
+    scale of the dots' rim blurs and one of their rims); then takes the other dots and the edges beyond
+    them (:func:`_far_edges`) out of the profiles and fits the rims again. Where the printed fit's levels
+    come out of the dots' polarity the dots are modelled from their step fits (levels inside and outside
+    the rim, rim blur and rim ellipse), as they are on the first pass."""
     cen, axs, ths, ok, rms, support, s_med, lev_in, lev_out = fits
     # a dot whose fit failed is no model of its rim: left out as a neighbour (NaN level)
     model = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)

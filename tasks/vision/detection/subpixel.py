@@ -638,19 +638,17 @@ def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, 
     if p.neighbour_iterations and not log_scale and ok.sum() >= 2:
         t0 = clock()
         fits = (cen, axs, ths, ok, rms, support, s_med, lev_in, lev_out)
-        _neighbour_refits(image, crop2, fits, sigma, gap_ratio, sign, gain, p, lit_evenly=spread <= p.shadow_spread)
+        _neighbour_refits(image, crop2, fits, sigma, gap_ratio, sign, gain, p)
         t_fit += clock() - t0
     return cen, axs, ths, ok, rms, support, s_med, spread, t_fit
 
 
-def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p, lit_evenly):
+def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p):
     """Fit again, in place, the dots whose pass-2 windows reach a neighbour's blurred dot, with the
     neighbours taken out of their profiles (:mod:`tasks.vision.detection.neighbour_rims`), up to
     ``p.neighbour_iterations`` times. fits: the (K,)-leading arrays of :func:`_rim_passes` (centres,
     semi-axes, angles, fitted, residual RMS, support, median rim blur, levels inside and outside the
-    rim), updated in place; sigma: (K,) pass-1 blur px; gain: the image's gain field; lit_evenly: (K,)
-    the dots refitted (a cast shadow's edge across or beside a dot is no part of the model: those dots
-    keep their first fit for :func:`shadow_suspects`, and serve as neighbours).
+    rim), updated in place; sigma: (K,) pass-1 blur px; gain: the image's gain field.
 
     Each pass samples the reached dots' rays and, ``p.neighbour_model_rounds`` times, refits the gain
     field to the rays' ends without the neighbours' tails (else its smooth field takes up part of them
@@ -663,8 +661,7 @@ def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p, lit_ev
     cen, axs, ths, ok, rms, support, s_med, lev_in, lev_out = fits
     # a dot whose fit failed is no model of its rim: left out as a neighbour (NaN level)
     model = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
-    near = np.flatnonzero(ok & lit_evenly & within_reach(model, _window_half_widths(sigma, axs, gap_ratio, crop.level,
-                                                                                    p)))
+    near = np.flatnonzero(ok & within_reach(model, _window_half_widths(sigma, axs, gap_ratio, crop.level, p)))
     if not len(near):
         return
     model = DotRims(*(np.array(v, dtype=float, copy=True) for v in (cen, axs, ths, s_med, model.level_in, lev_out)))

@@ -150,6 +150,7 @@ def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = No
     detectors = ("rrht", "cv2+clustering", "cv2")
     counts = {d: {"found": 0, "refused": 0, "wrong": 0} for d in detectors}
     errs: dict[str, list[float]] = {d: [] for d in counts}
+    worst: dict[str, list[float]] = {d: [] for d in counts}
     n_cases = 0
     for geometry, image, truth, plate, what in random_images(n, seed, fisheye, garden):
         n_cases += 1
@@ -159,6 +160,7 @@ def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = No
             c = run(d, image, plate) if det is None else (det.centres if det.ok else None)
             verdict, e = score(d, c, plate, truth, geometry.dot_px)
             errs[d] += [float(np.median(e))] if e is not None else []
+            worst[d] += [float(e.max())] if e is not None else []
             counts[d][verdict] += 1
             verdicts.append(f"{d} {verdict}" + (f" ({det.reason})" if det is not None and c is None else ""))
         print(f"{geometry.name:11s} {what}: " + ", ".join(verdicts), flush=True)
@@ -166,7 +168,8 @@ def random_run(n: int, seed: int, fisheye: bool = False, garden: str | None = No
     for d, c in counts.items():
         med = statistics.median(errs[d]) if errs[d] else float("nan")
         print(f"{d:15s} found {c['found']}, refused {c['refused']}, wrong {c['wrong']}; "
-              f"median of the per-image median centre errors {med:.3f} px")
+              f"median of the per-image median centre errors {med:.3f} px, worst dot "
+              f"{max(worst[d]) if worst[d] else float('nan'):.3f} px")
 
 
 def envelope_run(dot_sizes: list[float], tilts: list[float], size: str | None, defocus_px: float, k1: float) -> None:

@@ -14,7 +14,9 @@ The blurred-step fit of a dot's own rays does not measure a_j, R and σ_j when �
 radius: its inside level is the blurred dot's partly filled centre, not the ink (under σ = 4.7 px on a
 13 px dot 99 DN where the ink is 35 and the plate 215), and its rim with the first-order blur–curvature
 shift lies 1 px outside the printed one. A model built from those levels predicts a third of the
-neighbour's tail. :func:`fit_printed_dots` fits the blurred printed dot itself to a dot's rays.
+neighbour's tail. :func:`fit_printed_dots` fits the blurred printed dots themselves to the rays of all
+the dots the model reaches at once (one ink, one paper, one lens), and a printed ellipse's blur is
+read from :func:`ellipse_fill`.
 Units: px of the full-size image, grey levels of the profiles; angles rad from +u towards +v.
 """
 

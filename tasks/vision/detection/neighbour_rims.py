@@ -70,6 +70,23 @@ def within_reach(dots: DotRims, reach_px: np.ndarray) -> np.ndarray:
     return out
 
 
+def tails_at_rims(model: DotRims, near: np.ndarray) -> float:
+    """The largest fraction of its contrast that a neighbour's blurred rim adds at the rim of one of the
+    dots ``near``: Φ(−g/σ_j) for the gap g px between the two rims on the line between their centres
+    (bounded by the major semi-axes, so never under-estimated) and the neighbour's rim blur σ_j px."""
+    usable = np.flatnonzero(np.isfinite(model.centres).all(axis=1) & np.isfinite(model.axes).all(axis=1)
+                            & np.isfinite(model.sigma))
+    mine = near[np.isin(near, usable)]
+    if len(usable) < 2 or not len(mine):
+        return 0.0
+    n_q = min(N_NEIGHBOURS + 1, len(usable))
+    dist, j = cKDTree(model.centres[usable]).query(model.centres[mine], k=n_q)
+    j = usable[j]
+    gap = dist - model.axes[mine, 0, None] - model.axes[j, 0]
+    tail = np.where(j != mine[:, None], ndtr(-gap / np.maximum(model.sigma[j], 1e-3)), 0.0)
+    return float(tail.max())
+
+
 def neighbour_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(K, R, T) grey levels the other blurred printed dots add at the samples of K dots' rays
     (:func:`ellipse_fill`).

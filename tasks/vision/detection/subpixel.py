@@ -64,6 +64,7 @@ from tasks.vision.detection.neighbour_rims import (
     ellipse_fill,
     fit_printed_dots,
     neighbour_shift,
+    tails_at_rims,
     within_reach,
 )
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
@@ -102,6 +103,10 @@ class SubpixelParams:
     # contrast, are fitted again (up to neighbour_iterations times) with it taken out (neighbour_rims)
     neighbour_iterations: int = 2
     neighbour_min_shift: float = 0.02
+    # where a neighbour's blurred rim adds more than this fraction of the contrast at a reached dot's own
+    # rim (the noise of a 100–200 DN contrast in 8 bits), the neighbours are fitted as blurred printed dots;
+    # below it they are modelled from their step fits, as cheaply as the tails they add matter
+    neighbour_tail_min: float = 0.01
     neighbour_model_rounds: int = 1  # per refit: printed-dot fits alternating with their neighbours' tails
     far_edges: bool = True  # and edges beyond the printed dots (the sheet's) taken out too (_far_edges) …
     far_edge_contrast: float = 0.1  # … where they step by more than this fraction of the dots' contrast
@@ -650,46 +655,42 @@ def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p):
     semi-axes, angles, fitted, residual RMS, support, median rim blur, levels inside and outside the
     rim), updated in place; sigma: (K,) pass-1 blur px; gain: the image's gain field.
 
-    Each pass samples the reached dots' rays and, ``p.neighbour_model_rounds`` times, refits the gain
-    field to the rays' ends without the neighbours' tails (else its smooth field takes up part of them
-    and the model takes them out twice) and the blurred printed dots to every reached dot's rays at once
-    (:func:`~tasks.vision.detection.neighbour_rims.fit_printed_dots`: one ink and one plate level, one
-    scale of the dots' rim blurs and one of their rims); then takes the other dots and the edges beyond
-    them (:func:`_far_edges`) out of the profiles and fits the rims again. Where the printed fit's levels
-    come out of the dots' polarity the dots are modelled from their step fits (levels inside and outside
-    the rim, rim blur and rim ellipse), as they are on the first pass."""
+    Where no neighbour's blurred rim reaches a dot's own rim by more than ``p.neighbour_tail_min`` of
+    the contrast (:func:`~tasks.vision.detection.neighbour_rims.tails_at_rims`: sharp dots, whose
+    windows reach only the far ends of the neighbours' tails) the neighbours are modelled from their
+    step fits (levels inside and outside the rim, rim blur and rim ellipse), rebuilt before each
+    refit. Else each pass samples the reached dots' rays and, ``p.neighbour_model_rounds`` times,
+    refits the gain field to the rays' ends without the neighbours' tails (else its smooth field takes
+    up part of them and the model takes them out twice) and the blurred printed dots to every reached
+    dot's rays at once (:func:`~tasks.vision.detection.neighbour_rims.fit_printed_dots`: one ink and one
+    plate level, one scale of the dots' rim blurs and one of their rims); then takes the other dots and
+    the edges beyond them (:func:`_far_edges`) out of the profiles and fits the rims again. Where the
+    printed fit's levels come out of the dots' polarity the dots are modelled from their step fits."""
     cen, axs, ths, ok, rms, support, s_med, lev_in, lev_out = fits
     # a dot whose fit failed is no model of its rim: left out as a neighbour (NaN level)
     model = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
     near = np.flatnonzero(ok & within_reach(model, _window_half_widths(sigma, axs, gap_ratio, crop.level, p)))
     if not len(near):
         return
+    printed = tails_at_rims(model, near) > p.neighbour_tail_min
     model = DotRims(*(np.array(v, dtype=float, copy=True) for v in (cen, axs, ths, s_med, model.level_in, lev_out)))
-    for _ in range(p.neighbour_iterations):
+    for i in range(p.neighbour_iterations):
+        if not printed and i:  # the step fits' model, rebuilt from the refitted dots
+            model = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
+            near = np.flatnonzero(ok & within_reach(model, _window_half_widths(sigma, axs, gap_ratio, crop.level, p)))
+            if not len(near):
+                return
         prof, t, inside, ang, half_w, rho = _pass2_profiles(crop, cen[near], axs[near], ths[near], sigma[near],
                                                             gap_ratio, p)
-        model.centres[near], model.theta[near] = cen[near], ths[near]
+        if printed:
+            model.centres[near], model.theta[near] = cen[near], ths[near]
         shift = neighbour_shift(model, near, cen[near], ang, t)
         reached = np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in)[near]
         if not reached.any():
             return
-        use = inside.all(axis=2)
-        for _ in range(p.neighbour_model_rounds):  # the printed dots and the gain field without them, in turn
-            if p.flat_field and len(near) >= 3:
-                gain = fit_gain_field(prof - shift, t, use, cen[near], ang)
-            flat = flatten_profiles(prof, t, cen[near], ang, gain) if p.flat_field else prof
-            every = slice(None, None, 2)  # half the rays: the levels, blurs and rim scales hardly need more
-            fitted = fit_printed_dots(DotRims(cen, np.where(ok[:, None], axs, np.nan), ths, s_med, lev_in, lev_out),
-                                      near, flat[:, every], ang[every], t[:, every], use[:, every])
-            if not sign * (fitted.level_out[0] - fitted.level_in[0]) > 0:
-                break
-            model = DotRims(fitted.centres, fitted.axes, fitted.theta, fitted.sigma,
-                            np.where(ok, fitted.level_in, np.nan), fitted.level_out)
-            shift = neighbour_shift(model, near, cen[near], ang, t)
-        if p.flat_field and len(near) >= 3:
-            gain = fit_gain_field(prof - shift, t, use, cen[near], ang)
-        if p.far_edges:
-            shift = shift + _far_edges(image, crop.level, model, near, ang, t, half_w, rho, gain, p)
+        if printed:
+            model, shift, gain = _printed_model(image, crop, fits, model, near, prof, t, inside, ang, half_w, rho,
+                                                shift, sign, gain, p)
         x, y, valid, s, li, lo = _pass2_rims(prof[reached], t[reached], inside[reached], cen[near[reached]],
                                              axs[near[reached]], ths[near[reached]], sigma[near[reached]],
                                              half_w[reached], rho[reached], shift[reached], sign=sign, ang=ang,
@@ -701,6 +702,31 @@ def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p):
         cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
         rms[upd], s_med[upd], support[upd], lev_in[upd], lev_out[upd] = (
             rms_p[okp], s_med_p[okp], support_p[okp], li[okp], lo[okp])
+
+
+def _printed_model(image, crop, fits, model, near, prof, t, inside, ang, half_w, rho, shift, sign, gain, p):
+    """The neighbours of the dots ``near`` as blurred printed ellipses fitted to their rays, with the gain
+    field refitted without their tails and the edges beyond them (:func:`_far_edges`): (model, the grey
+    levels (K, R, T) they add at the samples t, gain field). See :func:`_neighbour_refits`."""
+    cen, axs, ths, ok, _, _, s_med, lev_in, lev_out = fits
+    use = inside.all(axis=2)
+    for _ in range(p.neighbour_model_rounds):  # the printed dots and the gain field without them, in turn
+        if p.flat_field and len(near) >= 3:
+            gain = fit_gain_field(prof - shift, t, use, cen[near], ang)
+        flat = flatten_profiles(prof, t, cen[near], ang, gain) if p.flat_field else prof
+        every = slice(None, None, 2)  # half the rays: the levels, blurs and rim scales hardly need more
+        fitted = fit_printed_dots(DotRims(cen, np.where(ok[:, None], axs, np.nan), ths, s_med, lev_in, lev_out),
+                                  near, flat[:, every], ang[every], t[:, every], use[:, every])
+        if not sign * (fitted.level_out[0] - fitted.level_in[0]) > 0:
+            break
+        model = DotRims(fitted.centres, fitted.axes, fitted.theta, fitted.sigma,
+                        np.where(ok, fitted.level_in, np.nan), fitted.level_out)
+        shift = neighbour_shift(model, near, cen[near], ang, t)
+    if p.flat_field and len(near) >= 3:
+        gain = fit_gain_field(prof - shift, t, use, cen[near], ang)
+    if p.far_edges:
+        shift = shift + _far_edges(image, crop.level, model, near, ang, t, half_w, rho, gain, p)
+    return model, shift, gain
 
 
 def _far_edges(image, level, model, near, ang, t, half_w, rho, gain, p):

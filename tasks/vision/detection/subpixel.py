@@ -740,7 +740,7 @@ def _far_edges(image, level, model, near, ang, t, half_w, rho, gain, p):
     centred on rho (K, R) px) the rays are sampled over 3 blurs more, the printed dots
     (``model``, :class:`DotRims` with :func:`~tasks.vision.detection.neighbour_rims.fit_printed_dots`'
     levels) are taken out, and where what is left steps by more than ``p.far_edge_contrast`` of the
-    dots' contrast, away from any other dot, a blurred step (the dot's blur, fixed) is fitted to it; its
+    dots' contrast, away from any other dot, a blurred step (its width fitted) is fitted to it; its
     tail inside the window is returned. gain: the image's gain field."""
     k, r = t.shape[:2]
     sig = model.sigma[near]
@@ -768,9 +768,10 @@ def _far_edges(image, level, model, near, ang, t, half_w, rho, gain, p):
     if not cand.any():
         return out
     te0 = np.broadcast_to(t_far[..., n_far // 2], (k, r))
-    fixed = np.broadcast_to(sig[:, None], (k, r))
     te, s_e, conv, a_e, b_e, _ = step_fit(left, t_far, te0, lo, hi, sig, p.erf_iterations + 2)
-    s_e = np.maximum(np.nan_to_num(s_e, nan=1.0), fixed)  # an edge crossed obliquely is wider along the ray
+    # the edge's own blur, not the dots': where the sheet's edge is sharper than the dots' fitted blur, a
+    # tail as wide as theirs reaches into the window further than the edge's and is taken out too far
+    s_e = np.nan_to_num(s_e, nan=1.0)
     edge = cand & conv & (np.abs(b_e - a_e) > p.far_edge_contrast * contrast) & (te > t_far[..., 0] - sig[:, None])
     tail = (b_e - a_e)[..., None] * ndtr((t - te[..., None]) / s_e[..., None])
     return np.where(edge[..., None], tail, 0.0).astype(np.float32)

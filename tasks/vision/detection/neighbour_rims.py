@@ -72,8 +72,9 @@ def within_reach(dots: DotRims, reach_px: np.ndarray) -> np.ndarray:
 
 def tails_at_rims(model: DotRims, near: np.ndarray) -> float:
     """The largest fraction of its contrast that a neighbour's blurred rim adds at the rim of one of the
-    dots ``near``: Φ(−g/σ_j) for the gap g px between the two rims on the line between their centres
-    (bounded by the major semi-axes, so never under-estimated) and the neighbour's rim blur σ_j px."""
+    dots ``near`` (indices into ``model``): Φ(−g/σ_j) for the gap g px between the two rim ellipses on
+    the line between their centres and the neighbour's rim blur σ_j px, over the :data:`N_NEIGHBOURS`
+    nearest dots (dots with a non-finite ellipse or blur left out)."""
     usable = np.flatnonzero(np.isfinite(model.centres).all(axis=1) & np.isfinite(model.axes).all(axis=1)
                             & np.isfinite(model.sigma))
     mine = near[np.isin(near, usable)]
@@ -82,7 +83,13 @@ def tails_at_rims(model: DotRims, near: np.ndarray) -> float:
     n_q = min(N_NEIGHBOURS + 1, len(usable))
     dist, j = cKDTree(model.centres[usable]).query(model.centres[mine], k=n_q)
     j = usable[j]
-    gap = dist - model.axes[mine, 0, None] - model.axes[j, 0]
+    d = model.centres[j] - model.centres[mine, None]  # (K, n_q, 2) from each dot to its neighbours
+
+    def rim(k, du, dv):  # the rim's distance px from the centres of dots k along (du, dv)
+        c, s = np.cos(model.theta[k]), np.sin(model.theta[k])
+        return _rim_geometry(du * c + dv * s, -du * s + dv * c, model.axes[k, 0], model.axes[k, 1])[1]
+
+    gap = dist - rim(mine[:, None], d[..., 0], d[..., 1]) - rim(j, -d[..., 0], -d[..., 1])
     tail = np.where(j != mine[:, None], ndtr(-gap / np.maximum(model.sigma[j], 1e-3)), 0.0)
     return float(tail.max())
 
@@ -105,6 +112,49 @@ def neighbour_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.nda
         other = (j != own)[:, None, None]
         fill = disc_fill(np.maximum(radius + rho - rim, 0.0), radius, sig)
         out += np.where(other, (dots.level_in[j] - dots.level_out[j])[:, None, None] * fill, 0.0).astype(np.float32)
+    return out
+
+
+def sharp_rims_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(K, R, T) grey levels the blurred rims of the other dots add at the samples of K dots' rays, each
+    dot j's rim a straight edge of its step fit's levels ``dots.level_in``/``level_out`` blurred by its
+    rim blur s_j: at d px outside its ellipse (along the line to its centre) (a_j − b_j) Φ(−(d + s_j²/(2
+    r_j)) / s_j), r_j its mean semi-axis (the blurred rim's half level lies s²/(2 r) inside the rim).
+    The model of sharp dots, where only a neighbour's rim itself, not its tail, reaches a dot's window
+    (:func:`tails_at_rims`); under a blur as wide as the gap :func:`neighbour_shift`.
+
+    own: (K,) index of each ray origin's dot in ``dots`` (left out of its own model); cen: (K, 2) px
+    ray origins; ang: (R,) ray angles; t: (K, R, T) px along the rays. Only the
+    :data:`N_NEIGHBOURS` nearest other dots are modelled; dots whose fit is not finite are left out.
+    """
+    k = len(own)
+    out = np.zeros(t.shape, np.float32)
+    usable = np.isfinite(dots.centres).all(axis=1) & np.isfinite(dots.axes).all(axis=1) & np.isfinite(dots.sigma)
+    usable &= np.isfinite(dots.level_in) & np.isfinite(dots.level_out)
+    pool = np.flatnonzero(usable)
+    if k == 0 or len(pool) < 2:
+        return out
+    n_q = min(N_NEIGHBOURS + 1, len(pool))
+    _, near = cKDTree(dots.centres[pool]).query(cen, k=n_q)
+    near = pool[np.asarray(near).reshape(k, n_q)]  # (K, Q)
+    u = cen[:, 0, None, None] + np.cos(ang)[None, :, None] * t  # (K, R, T)
+    v = cen[:, 1, None, None] + np.sin(ang)[None, :, None] * t
+    for q in range(n_q):
+        j = near[:, q]
+        other = j != own
+        if not other.any():
+            continue
+        du = u - dots.centres[j, 0, None, None]
+        dv = v - dots.centres[j, 1, None, None]
+        c, s = np.cos(dots.theta[j])[:, None, None], np.sin(dots.theta[j])[:, None, None]
+        x = (du * c + dv * s) / dots.axes[j, 0, None, None]
+        y = (-du * s + dv * c) / dots.axes[j, 1, None, None]
+        dist = np.hypot(du, dv) * (1.0 - 1.0 / np.maximum(np.hypot(x, y), 1e-6))  # outside the ellipse > 0
+        sig = dots.sigma[j, None, None]
+        # the blurred rim's half level lies σ²/(2 r) inside the rim (its curvature, r the mean semi-axis)
+        dist = dist + sig**2 / (2.0 * np.sqrt(dots.axes[j, 0] * dots.axes[j, 1]))[:, None, None]
+        shift = (dots.level_in[j] - dots.level_out[j])[:, None, None] * ndtr(-dist / sig)
+        out += np.where(other[:, None, None], shift, 0.0).astype(np.float32)
     return out
 
 

@@ -64,6 +64,7 @@ from tasks.vision.detection.neighbour_rims import (
     ellipse_fill,
     fit_printed_dots,
     neighbour_shift,
+    sharp_rims_shift,
     tails_at_rims,
     within_reach,
 )
@@ -684,7 +685,7 @@ def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p):
                                                             gap_ratio, p)
         if printed:
             model.centres[near], model.theta[near] = cen[near], ths[near]
-        shift = neighbour_shift(model, near, cen[near], ang, t)
+        shift = (neighbour_shift if printed else sharp_rims_shift)(model, near, cen[near], ang, t)
         reached = np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in)[near]
         if not reached.any():
             return

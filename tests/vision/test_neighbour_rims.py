@@ -14,7 +14,7 @@ import pytest
 
 from tasks.simulation.detector_stress import StressCase, errors_up_to_symmetry, render_stress_case
 from tasks.vision.detection.framework import FrameworkParams, detect_rrht
-from tasks.vision.detection.neighbour_rims import disc_fill, ellipse_fill
+from tasks.vision.detection.neighbour_rims import DotRims, disc_fill, ellipse_fill, tails_at_rims
 from tasks.vision.detection.subpixel import SubpixelParams
 
 
@@ -64,3 +64,12 @@ def test_the_sheets_edge_beyond_the_outer_dots_is_taken_out_too():
     image, truth, case = _plain(16.0, 3.0, True)
     assert _median_error(image, truth, case, far_edges=False) > 0.18
     assert _median_error(image, truth, case) < 0.1
+
+
+@pytest.mark.parametrize(("sigma", "tail"), [(0.8, 0.00621), (2.5, 0.21186)])
+def test_tails_at_rims_is_the_blurred_rim_across_the_gap_between_the_ellipses(sigma, tail):
+    # ellipses of semi-axes 5 × 3 px (major along u), neighbours 8 px apart along v: the rims are
+    # 2 px apart on that line (their major semi-axes would overlap); the tail there is Φ(−2/σ)
+    centres = np.array([[0.0, 0.0], [0.0, 8.0], [30.0, 0.0]])
+    dots = DotRims(centres, np.tile([5.0, 3.0], (3, 1)), np.zeros(3), np.full(3, sigma), np.zeros(3), np.ones(3))
+    assert tails_at_rims(dots, np.array([0])) == pytest.approx(tail, abs=1e-5)

@@ -105,9 +105,10 @@ class SubpixelParams:
     neighbour_iterations: int = 2
     neighbour_min_shift: float = 0.02
     # where a neighbour's blurred rim adds more than this fraction of the contrast at a reached dot's own
-    # rim (the noise of a 100–200 DN contrast in 8 bits), the neighbours are fitted as blurred printed dots;
-    # below it they are modelled from their step fits, as cheaply as the tails they add matter
-    neighbour_tail_min: float = 0.01
+    # rim (0.1 DN on a 100 DN contrast, under 8 bits' quantisation noise of 0.29 DN), the neighbours are
+    # fitted as blurred printed dots; below it they are modelled from their step fits (sharp dots: at most
+    # 3.4e-4 on bench_stress --envelope 8,12; σ = 2 px of extra blur on 10–16 px dots: 4e-3 and more)
+    neighbour_tail_min: float = 1e-3
     neighbour_model_rounds: int = 1  # per refit: printed-dot fits alternating with their neighbours' tails
     far_edges: bool = True  # and edges beyond the printed dots (the sheet's) taken out too (_far_edges) …
     far_edge_contrast: float = 0.1  # … where they step by more than this fraction of the dots' contrast

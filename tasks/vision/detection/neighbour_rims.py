@@ -8,7 +8,9 @@ one side). Each neighbour j is modelled as what it is, a printed ellipse of ink 
 plate's level b_j blurred by σ_j: at distance ρ from its centre, where its rim lies R from the centre
 in that direction, it shifts the grey level by (a_j − b_j) F(ρ; R, σ_j), F the fraction of a disc of
 radius R blurred by a Gaussian of σ that reaches ρ (:func:`disc_fill`); the shift is removed from
-the profile before the step fit.
+the profile before the step fit. Sharp dots' windows reach only a neighbour's rim itself, not its
+tail (:func:`tails_at_rims`): there a straight blurred edge with the neighbour's step-fit levels is
+enough (:func:`sharp_rims_shift`).
 
 The blurred-step fit of a dot's own rays does not measure a_j, R and σ_j when σ is comparable to the
 radius: its inside level is the blurred dot's partly filled centre, not the ink (under σ = 4.7 px on a

@@ -31,7 +31,9 @@ contours:
   the dots), the neighbours are modelled as blurred printed ellipses fitted to the reached dots' rays
   together, the gain field is fitted again without their tails, edges beyond the dots (the sheet's)
   are fitted beyond the windows, all are taken out of the profiles, and the dot is fitted again
-  (:func:`_neighbour_refits`, :mod:`tasks.vision.detection.neighbour_rims`).
+  (:func:`_neighbour_refits`, :mod:`tasks.vision.detection.neighbour_rims`); where the windows reach
+  only sharp rims (their tails at the dots' rims under ``neighbour_tail_min`` of the contrast) the
+  neighbours are straight blurred edges with their step fits' levels instead.
 
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels

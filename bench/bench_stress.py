@@ -9,6 +9,7 @@
     .venv/bin/python bench/bench_stress.py --hand-fit      # centres against the truth and a hand-fit-like rim ellipse
     .venv/bin/python bench/bench_stress.py --envelope 8,12,20,50,150,400 --tilts 0,30,50   # the issue's envelope (RRHT)
     .venv/bin/python bench/bench_stress.py --blur-sweep 10,13,16 --blurs 1,2,3 --tilts 0,40   # neighbour model off / on
+    .venv/bin/python bench/bench_stress.py --blur-sweep 10,13,16 --margin-mm 400   # … the sheet's edge out of reach
 
 Each stress image (a 4 × 3 sheet of Ø 4 mm dots at a 6 mm pitch, rendered with lens distortion,
 then paper texture, clutter, shadow, colour, JPEG and the conversion back to grey, as a user's
@@ -215,12 +216,14 @@ def envelope_run(dot_sizes: list[float], tilts: list[float], size: str | None, d
                       f"{verdict:7s} {ms:6.0f} ms  {what}", flush=True)
 
 
-def blur_sweep_run(dot_sizes: list[float], blurs: list[float], tilts: list[float], scene: bool) -> None:
+def blur_sweep_run(dot_sizes: list[float], blurs: list[float], tilts: list[float], scene: bool,
+                   margin_mm: float | None = None) -> None:
     """RRHT's centre error (median / worst px against the true centres, up to the grid's symmetry) with
     the rim fits' neighbour model off and on (``SubpixelParams.neighbour_iterations`` 0 and its
     default), same image, on 640 × 480 renders of each dot size (px) × extra blur σ (px) × tilt (deg)
     × polarity: a plain sheet (even light), or with ``scene`` the envelope's (clutter, paper texture, a
-    shadow edge, uneven light, colour, JPEG 80)."""
+    shadow edge, uneven light, colour, JPEG 80); ``margin_mm``: the sheet's margin beyond the outer dots'
+    centres (the stress plate's 5 mm by default; 400 puts its edge out of the rays' reach)."""
     on = SubpixelParams().neighbour_iterations
     for d in dot_sizes:
         for blur in blurs:
@@ -228,6 +231,8 @@ def blur_sweep_run(dot_sizes: list[float], blurs: list[float], tilts: list[float
                 for dark in (True, False):
                     extra = dict(clutter=30, texture=True, shadow=0.5, gradient=0.8, vignetting=0.3, colour=True,
                                  jpeg=80) if scene else dict(gradient=0.0, vignetting=0.0)
+                    if margin_mm is not None:
+                        extra["plate"] = replace(ISSUE_PLATE, margin_mm=margin_mm)
                     case = StressCase(f"blur-{d:g}px-{blur:g}", 640, 480, d, tilt_deg=tilt, tilt_azimuth_deg=37.0,
                                       spin_deg=20.0, dark_dots=dark, seed=1000, defocus_px=blur, **extra)
                     image, truth = render_stress_case(case)
@@ -293,6 +298,8 @@ def main() -> None:
                                          "model off and on (blur_sweep_run)")
     ap.add_argument("--blurs", default="1,2,3", help="with --blur-sweep: extra blur σ px")
     ap.add_argument("--scene", action="store_true", help="with --blur-sweep: the envelope's scene, not a plain sheet")
+    ap.add_argument("--margin-mm", type=float,
+                    help="with --blur-sweep: the sheet's margin beyond the outer dots' centres (default 5 mm)")
     args = ap.parse_args()
     if args.envelope:
         envelope_run([float(x) for x in args.envelope.split(",")], [float(x) for x in args.tilts.split(",")],
@@ -300,7 +307,7 @@ def main() -> None:
         return
     if args.blur_sweep:
         blur_sweep_run([float(x) for x in args.blur_sweep.split(",")], [float(x) for x in args.blurs.split(",")],
-                       [float(x) for x in args.tilts.split(",")], args.scene)
+                       [float(x) for x in args.tilts.split(",")], args.scene, args.margin_mm)
         return
     if args.hand_fit:
         hand_fit_run([c for c in STRESS_CASES if not args.case or c.name in args.case])

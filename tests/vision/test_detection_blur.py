@@ -88,7 +88,7 @@ def test_neighbour_shift_matches_a_blurred_disc():
     t = np.linspace(2.0, 12.0, 11)[None, None, :]
     shift = neighbour_shift(replace(dots, centres=np.array([c, [26.0, 40.0]])), own, cen, ang, t)[0, 0]
     grey = image[40, (26 + t[0, 0]).astype(int)]  # whole px along the row through both centres
-    assert np.abs(shift - (grey - 200.0)).max() < 6.0  # of a 160 DN step: an edge moved in by its curvature
+    assert np.abs(shift - (grey - 200.0)).max() < 3.0  # of a 160 DN step (4.3 DN with the blurred-step model, b9e81c2)
     assert shift[6] < -60.0  # at the disc's rim (t 8 px): half the step
 
 

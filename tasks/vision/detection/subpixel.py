@@ -28,8 +28,12 @@ contours:
   a log scale, where the shadow's edge is a smaller step than the rim on either side of it
   (:func:`lit_spread`, :func:`shadow_suspects`, :func:`log_levels`).
 * neighbours: where a dot's rays reach a neighbour's blurred rim (a blur as wide as the gap between
-  the dots), the neighbours' rims are modelled from their fits and taken out of the profiles, and
-  the dot is fitted again (:mod:`tasks.vision.detection.neighbour_rims`).
+  the dots), the neighbours are modelled as blurred printed ellipses fitted to the reached dots' rays
+  together, the gain field is fitted again without their tails, edges beyond the dots (the sheet's)
+  are fitted beyond the windows, all are taken out of the profiles, and the dot is fitted again
+  (:func:`_neighbour_refits`, :mod:`tasks.vision.detection.neighbour_rims`); where the windows reach
+  only sharp rims (their tails at the dots' rims under ``neighbour_tail_min`` of the contrast) the
+  neighbours are straight blurred edges with their step fits' levels instead.
 
 A least-squares ellipse (Sampson-weighted, with outlier rejection) through the rim points gives
 the ellipse centre. Dots whose rim blur is at most 1.5 px are then refitted to the pixels
@@ -45,6 +49,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.special import ndtr
 
 from tasks.vision.detection.conics import (
     abs_sampson_distance,
@@ -56,7 +61,15 @@ from tasks.vision.detection.conics import (
     ransac_samples,
 )
 from tasks.vision.detection.edge_fit import EdgeFitParams, fit_dot_edges
-from tasks.vision.detection.neighbour_rims import DotRims, neighbour_shift, within_reach
+from tasks.vision.detection.neighbour_rims import (
+    DotRims,
+    ellipse_fill,
+    fit_printed_dots,
+    neighbour_shift,
+    sharp_rims_shift,
+    tails_at_rims,
+    within_reach,
+)
 from tasks.vision.detection.parallel import over_dots, over_dots_compiled, resize_area
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.stats import masked_median
@@ -93,6 +106,14 @@ class SubpixelParams:
     # contrast, are fitted again (up to neighbour_iterations times) with it taken out (neighbour_rims)
     neighbour_iterations: int = 2
     neighbour_min_shift: float = 0.02
+    # where a neighbour's blurred rim adds more than this fraction of the contrast at a reached dot's own
+    # rim (0.1 DN on a 100 DN contrast, under 8 bits' quantisation noise of 0.29 DN), the neighbours are
+    # fitted as blurred printed dots; below it they are modelled from their step fits (sharp dots: at most
+    # 3.4e-4 on bench_stress --envelope 8,12; σ = 2 px of extra blur on 10–16 px dots: 4e-3 and more)
+    neighbour_tail_min: float = 1e-3
+    neighbour_model_rounds: int = 1  # per refit: printed-dot fits alternating with their neighbours' tails
+    far_edges: bool = True  # and edges beyond the printed dots (the sheet's) taken out too (_far_edges) …
+    far_edge_contrast: float = 0.1  # … where they step by more than this fraction of the dots' contrast
     pixel_edge_fit: bool = True  # then refit sharp dots to the pixels themselves (tasks.vision.detection.edge_fit)
     edge_fit: EdgeFitParams = field(default_factory=EdgeFitParams)
     # dots whose rays' bright ends differ by more than this in ln grey level (lit_spread; a shadow at
@@ -625,31 +646,139 @@ def _rim_passes(image, centres, axes, theta, sign, gap_ratio, coarse_factor, p, 
             break
     if p.neighbour_iterations and not log_scale and ok.sum() >= 2:
         t0 = clock()
-        for _ in range(p.neighbour_iterations):
-            # a dot whose fit failed is no model of its rim: left out as a neighbour (NaN level)
-            dots = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
-            near = np.flatnonzero(ok & within_reach(dots, _window_half_widths(sigma, axs, gap_ratio, crop2.level, p)))
-            if not len(near):
-                break
-            prof, t, inside, ang, half_w, rho = _pass2_profiles(crop2, cen[near], axs[near], ths[near], sigma[near],
-                                                                gap_ratio, p)
-            shift = neighbour_shift(dots, near, cen[near], ang, t)
-            reached = np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in)[near]
-            if not reached.any():
-                break
-            x, y, valid, s, li, lo = _pass2_rims(prof[reached], t[reached], inside[reached], cen[near[reached]],
-                                                 axs[near[reached]], ths[near[reached]], sigma[near[reached]],
-                                                 half_w[reached], rho[reached], shift[reached], sign=sign, ang=ang,
-                                                 gain=gain, p=p)
-            todo = near[reached]
-            okp, cn, an, tn, rms_p, s_med_p, support_p = _rim_ellipses(x, y, valid, s, cen[todo], axs[todo],
-                                                                       n_rays=len(ang))
-            upd = todo[okp]
-            cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
-            rms[upd], s_med[upd], support[upd], lev_in[upd], lev_out[upd] = (
-                rms_p[okp], s_med_p[okp], support_p[okp], li[okp], lo[okp])
+        fits = (cen, axs, ths, ok, rms, support, s_med, lev_in, lev_out)
+        _neighbour_refits(image, crop2, fits, sigma, gap_ratio, sign, gain, p)
         t_fit += clock() - t0
     return cen, axs, ths, ok, rms, support, s_med, spread, t_fit
+
+
+def _neighbour_refits(image, crop, fits, sigma, gap_ratio, sign, gain, p):
+    """Fit again, in place, the dots whose pass-2 windows reach a neighbour's blurred dot, with the
+    neighbours taken out of their profiles (:mod:`tasks.vision.detection.neighbour_rims`), up to
+    ``p.neighbour_iterations`` times. fits: the (K,)-leading arrays of :func:`_rim_passes` (centres,
+    semi-axes, angles, fitted, residual RMS, support, median rim blur, levels inside and outside the
+    rim), updated in place; sigma: (K,) pass-1 blur px; gain: the image's gain field.
+
+    Where no neighbour's blurred rim reaches a dot's own rim by more than ``p.neighbour_tail_min`` of
+    the contrast (:func:`~tasks.vision.detection.neighbour_rims.tails_at_rims`: sharp dots, whose
+    windows reach only the far ends of the neighbours' tails) the neighbours are modelled from their
+    step fits (levels inside and outside the rim, rim blur and rim ellipse), rebuilt before each
+    refit. Else each pass samples the reached dots' rays and, ``p.neighbour_model_rounds`` times,
+    refits the gain field to the rays' ends without the neighbours' tails (else its smooth field takes
+    up part of them and the model takes them out twice) and the blurred printed dots to every reached
+    dot's rays at once (:func:`~tasks.vision.detection.neighbour_rims.fit_printed_dots`: one ink and one
+    plate level, one scale of the dots' rim blurs and one of their rims); then takes the other dots and
+    the edges beyond them (:func:`_far_edges`) out of the profiles and fits the rims again. Where the
+    printed fit's levels come out of the dots' polarity the dots are modelled from their step fits."""
+    cen, axs, ths, ok, rms, support, s_med, lev_in, lev_out = fits
+    # a dot whose fit failed is no model of its rim: left out as a neighbour (NaN level)
+    model = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
+    near = np.flatnonzero(ok & within_reach(model, _window_half_widths(sigma, axs, gap_ratio, crop.level, p)))
+    if not len(near):
+        return
+    printed = tails_at_rims(model, near) > p.neighbour_tail_min
+    model = DotRims(*(np.array(v, dtype=float, copy=True) for v in (cen, axs, ths, s_med, model.level_in, lev_out)))
+    for i in range(p.neighbour_iterations):
+        if not printed and i:  # the step fits' model, rebuilt from the refitted dots
+            model = DotRims(cen, axs, ths, s_med, np.where(ok, lev_in, np.nan), lev_out)
+            near = np.flatnonzero(ok & within_reach(model, _window_half_widths(sigma, axs, gap_ratio, crop.level, p)))
+            if not len(near):
+                return
+        prof, t, inside, ang, half_w, rho = _pass2_profiles(crop, cen[near], axs[near], ths[near], sigma[near],
+                                                            gap_ratio, p)
+        if printed:
+            model.centres[near], model.theta[near] = cen[near], ths[near]
+        shift = (neighbour_shift if printed else sharp_rims_shift)(model, near, cen[near], ang, t)
+        reached = np.abs(shift).max(axis=(1, 2)) > p.neighbour_min_shift * np.abs(lev_out - lev_in)[near]
+        if not reached.any():
+            return
+        if printed:
+            model, shift, gain = _printed_model(image, crop, fits, model, near, prof, t, inside, ang, half_w, rho,
+                                                shift, sign, gain, p)
+        x, y, valid, s, li, lo = _pass2_rims(prof[reached], t[reached], inside[reached], cen[near[reached]],
+                                             axs[near[reached]], ths[near[reached]], sigma[near[reached]],
+                                             half_w[reached], rho[reached], shift[reached], sign=sign, ang=ang,
+                                             gain=gain, p=p)
+        todo = near[reached]
+        okp, cn, an, tn, rms_p, s_med_p, support_p = _rim_ellipses(x, y, valid, s, cen[todo], axs[todo],
+                                                                   n_rays=len(ang))
+        upd = todo[okp]
+        cen[upd], axs[upd], ths[upd] = cn[okp], an[okp], tn[okp]
+        rms[upd], s_med[upd], support[upd], lev_in[upd], lev_out[upd] = (
+            rms_p[okp], s_med_p[okp], support_p[okp], li[okp], lo[okp])
+
+
+def _printed_model(image, crop, fits, model, near, prof, t, inside, ang, half_w, rho, shift, sign, gain, p):
+    """The neighbours of the dots ``near`` as blurred printed ellipses fitted to their rays, with the gain
+    field refitted without their tails and the edges beyond them (:func:`_far_edges`): (model, the grey
+    levels (K, R, T) they add at the samples t, gain field). See :func:`_neighbour_refits`."""
+    cen, axs, ths, ok, _, _, s_med, lev_in, lev_out = fits
+    use = inside.all(axis=2)
+    for _ in range(p.neighbour_model_rounds):  # the printed dots and the gain field without them, in turn
+        if p.flat_field and len(near) >= 3:
+            gain = fit_gain_field(prof - shift, t, use, cen[near], ang)
+        flat = flatten_profiles(prof, t, cen[near], ang, gain) if p.flat_field else prof
+        every = slice(None, None, 2)  # half the rays: the levels, blurs and rim scales hardly need more
+        fitted = fit_printed_dots(DotRims(cen, np.where(ok[:, None], axs, np.nan), ths, s_med, lev_in, lev_out),
+                                  near, flat[:, every], ang[every], t[:, every], use[:, every])
+        if not sign * (fitted.level_out[0] - fitted.level_in[0]) > 0:
+            break
+        model = DotRims(fitted.centres, fitted.axes, fitted.theta, fitted.sigma,
+                        np.where(ok, fitted.level_in, np.nan), fitted.level_out)
+        shift = neighbour_shift(model, near, cen[near], ang, t)
+    if p.flat_field and len(near) >= 3:
+        gain = fit_gain_field(prof - shift, t, use, cen[near], ang)
+    if p.far_edges:
+        shift = shift + _far_edges(image, crop.level, model, near, ang, t, half_w, rho, gain, p)
+    return model, shift, gain
+
+
+def _far_edges(image, level, model, near, ang, t, half_w, rho, gain, p):
+    """(K, R, T) grey levels that edges beyond the printed dots (the sheet's edge, a shadow's, clutter)
+    add at the pass-2 samples t (K, R, T) px of the dots ``near`` (K,) along rays at angles ang (R,).
+
+    Under a blur as wide as the gap the sheet's edge a few mm beyond the outer dots is within reach of
+    their rays as much as their neighbours are: on the stress set's sheet (3 mm of paper beyond the
+    outer dots' rims, then a background 125 DN darker) it moves the outer dots towards the grid's
+    middle, by as much as the neighbours moved them away. Beyond each window (half-widths half_w (K,),
+    centred on rho (K, R) px) the rays are sampled over 3 blurs more, the printed dots
+    (``model``, :class:`DotRims` with :func:`~tasks.vision.detection.neighbour_rims.fit_printed_dots`'
+    levels) are taken out, and where what is left steps by more than ``p.far_edge_contrast`` of the
+    dots' contrast, away from any other dot, a blurred step (its width fitted) is fitted to it; its
+    tail inside the window is returned. gain: the image's gain field."""
+    k, r = t.shape[:2]
+    sig = model.sigma[near]
+    contrast = abs(float(model.level_in[near[0]] - model.level_out[near[0]]))
+    step = (t[:, :, 1] - t[:, :, 0])[..., None]
+    n_far = int(np.clip(np.ceil(3.0 * np.nanmax(sig) / np.nanmin(step)), 4, 24))
+    t_far = (rho + half_w[:, None])[..., None] + step * np.arange(1, n_far + 1)
+    cen = model.centres[near]
+    crop = crop_rois(image, cen, float(np.nanmax(t_far)), level)
+    prof, inside = sample_profiles(crop, cen, ang, t_far)
+    if p.flat_field:
+        prof = flatten_profiles(prof, t_far, cen, ang, gain)
+    u = cen[:, 0, None, None] + np.cos(ang)[None, :, None] * t_far
+    v = cen[:, 1, None, None] + np.sin(ang)[None, :, None] * t_far
+    own = ellipse_fill(u - cen[:, 0, None, None], v - cen[:, 1, None, None], model.axes[near, 0, None, None],
+                       model.axes[near, 1, None, None], model.theta[near, None, None], sig[:, None, None])
+    others = neighbour_shift(model, near, cen, ang, t_far)
+    a, b = model.level_in[near, None, None], model.level_out[near, None, None]
+    left = prof - b - (a - b) * own - others  # the levels the printed dots do not explain
+    clear = inside.all(axis=2) & (np.abs(others).max(axis=2) < p.far_edge_contrast * contrast)
+    ne = max(2, n_far // 4)
+    lo, hi = left[..., :ne].mean(axis=2), left[..., -ne:].mean(axis=2)
+    cand = clear & (np.abs(hi - lo) > p.far_edge_contrast * contrast)
+    out = np.zeros(t.shape, np.float32)
+    if not cand.any():
+        return out
+    te0 = np.broadcast_to(t_far[..., n_far // 2], (k, r))
+    te, s_e, conv, a_e, b_e, _ = step_fit(left, t_far, te0, lo, hi, sig, p.erf_iterations + 2)
+    # the edge's own blur, not the dots': where the sheet's edge is sharper than the dots' fitted blur, a
+    # tail as wide as theirs reaches into the window further than the edge's and is taken out too far
+    s_e = np.nan_to_num(s_e, nan=1.0)
+    edge = cand & conv & (np.abs(b_e - a_e) > p.far_edge_contrast * contrast) & (te > t_far[..., 0] - sig[:, None])
+    tail = (b_e - a_e)[..., None] * ndtr((t - te[..., None]) / s_e[..., None])
+    return np.where(edge[..., None], tail, 0.0).astype(np.float32)
 
 
 def shadow_suspects(spread: np.ndarray, rms: np.ndarray, ok: np.ndarray, p: SubpixelParams) -> np.ndarray:

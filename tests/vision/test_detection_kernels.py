@@ -23,6 +23,7 @@ from tasks.vision.detection.edges import N_DIRECTIONS, canny_edges
 from tasks.vision.detection.ray_kernels import derivative_peaks, flatten, ray_coordinates
 from tasks.vision.detection.region_kernels import contour_areas, convex_contour_areas, darker_than_mean
 from tasks.vision.detection.rrht import local_maxima
+from tasks.vision.detection.stats import percentile
 
 
 def _solve_spd(m: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -392,6 +393,15 @@ def test_canny_gradients_are_the_two_sobel_derivatives():
         em = canny_edges(img)
         assert np.array_equal(em.gx, cv2.Sobel(img, cv2.CV_16S, 1, 0, ksize=3))
         assert np.array_equal(em.gy, cv2.Sobel(img, cv2.CV_16S, 0, 1, ksize=3))
+
+
+def test_percentile_is_numpys_to_every_bit():
+    rng = np.random.default_rng(7)
+    for _ in range(3000):
+        values = rng.integers(0, 256, int(rng.integers(1, 3000))).astype(np.float32)  # a window's grey levels
+        for q in (5.0, 25.0, 50.0, 97.5):
+            assert np.float32(percentile(values, q)).tobytes() == np.percentile(values, q).tobytes()
+    assert percentile(np.array([3.0, 1.0]), 40.0) == np.percentile([3.0, 1.0], 40.0)
 
 
 def test_direction_codes_wrap_by_a_bit_mask():

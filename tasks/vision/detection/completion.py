@@ -30,6 +30,7 @@ from tasks.machine.plate import DotPlate
 from tasks.vision.detection.grid_order import SIMILAR_SIZE
 from tasks.vision.detection.lattice_reason import best_window_fill
 from tasks.vision.detection.rrht import CoarseCircles
+from tasks.vision.detection.stats import percentile
 
 MAX_MISSING_FRACTION = 1 / 6
 """At most this fraction of the plate's dots (at least one) are looked for again: a window that
@@ -94,13 +95,15 @@ def find_dot_at(image: np.ndarray, place: np.ndarray, diameter: float, step: flo
         return None
     crop = image[v0 : v0 + 2 * half + 1, u0 : u0 + 2 * half + 1].astype(np.float32)
     src = crop if dark_dots else 255.0 - crop
-    yy, xx = np.mgrid[0 : src.shape[0], 0 : src.shape[1]].astype(np.float32)
-    r = np.hypot(xx - (place[0] - u0), yy - (place[1] - v0))
-    core = src[r <= MAX_PLACE_OFFSET_STEPS * step + 0.25 * diameter]
-    ring = src[(r >= 0.45 * step) & (r <= 0.6 * step)]
+    # squared distances from the place, px², a row and a column broadcast (hypot over the window cost more
+    # than the rest of the search)
+    du, dv = np.arange(src.shape[1]) - (place[0] - u0), np.arange(src.shape[0]) - (place[1] - v0)
+    r2 = du[None, :] ** 2 + dv[:, None] ** 2
+    core = src[r2 <= (MAX_PLACE_OFFSET_STEPS * step + 0.25 * diameter) ** 2]
+    ring = src[(r2 >= (0.45 * step) ** 2) & (r2 <= (0.6 * step) ** 2)]
     if core.size == 0 or ring.size == 0:
         return None
-    dot_level, paper = float(np.percentile(core, 5)), float(np.percentile(ring, 25))
+    dot_level, paper = percentile(core, 5), percentile(ring, 25)
     if paper - dot_level < MIN_CONTRAST_FRACTION * contrast:
         return None
     mask = (src < 0.5 * (dot_level + paper)).astype(np.uint8)

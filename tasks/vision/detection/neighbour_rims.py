@@ -108,8 +108,7 @@ def neighbour_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.nda
     dots = replace(dots, sigma=np.where(np.isfinite(dots.level_in) & np.isfinite(dots.level_out), dots.sigma, np.nan))
     if len(own) == 0 or np.isfinite(dots.sigma).sum() < 2:
         return out
-    u = cen[:, 0, None, None] + np.cos(ang)[None, :, None] * t  # (K, R, T)
-    v = cen[:, 1, None, None] + np.sin(ang)[None, :, None] * t
+    u, v = _ray_points(cen, ang, t)
     for j, rho, rim, radius, sig in _fill_terms(dots, u, v):
         other = (j != own)[:, None, None]
         fill = disc_fill(np.maximum(radius + rho - rim, 0.0), radius, sig)
@@ -129,19 +128,13 @@ def sharp_rims_shift(dots: DotRims, own: np.ndarray, cen: np.ndarray, ang: np.nd
     ray origins; ang: (R,) ray angles; t: (K, R, T) px along the rays. Only the
     :data:`N_NEIGHBOURS` nearest other dots are modelled; dots whose fit is not finite are left out.
     """
-    k = len(own)
     out = np.zeros(t.shape, np.float32)
-    usable = np.isfinite(dots.centres).all(axis=1) & np.isfinite(dots.axes).all(axis=1) & np.isfinite(dots.sigma)
-    usable &= np.isfinite(dots.level_in) & np.isfinite(dots.level_out)
-    pool = np.flatnonzero(usable)
-    if k == 0 or len(pool) < 2:
+    usable = _modelled(dots) & np.isfinite(dots.level_in) & np.isfinite(dots.level_out)
+    if len(own) == 0 or usable.sum() < 2:
         return out
-    n_q = min(N_NEIGHBOURS + 1, len(pool))
-    _, near = cKDTree(dots.centres[pool]).query(cen, k=n_q)
-    near = pool[np.asarray(near).reshape(k, n_q)]  # (K, Q)
-    u = cen[:, 0, None, None] + np.cos(ang)[None, :, None] * t  # (K, R, T)
-    v = cen[:, 1, None, None] + np.sin(ang)[None, :, None] * t
-    for q in range(n_q):
+    near = _nearest_dots(dots, usable, cen)
+    u, v = _ray_points(cen, ang, t)
+    for q in range(near.shape[1]):
         j = near[:, q]
         other = j != own
         if not other.any():
@@ -268,19 +261,34 @@ def fit_printed_dots(dots: DotRims, near: np.ndarray, prof: np.ndarray, ang: np.
     return DotRims(dots.centres, dots.axes * np.exp(p[1]), dots.theta, dots.sigma * np.exp(p[0]), gain * a, gain * b)
 
 
+def _ray_points(cen: np.ndarray, ang: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) (K, R, T) px of the samples at ``t`` (K, R, T) px along rays at ``ang`` (R,) from ``cen`` (K, 2)."""
+    return (cen[:, 0, None, None] + np.cos(ang)[None, :, None] * t,
+            cen[:, 1, None, None] + np.sin(ang)[None, :, None] * t)
+
+
+def _modelled(dots: DotRims) -> np.ndarray:
+    """(N,) bool: the dots with a finite ellipse and rim blur, which can be modelled as neighbours."""
+    return np.isfinite(dots.centres).all(axis=1) & np.isfinite(dots.axes).all(axis=1) & np.isfinite(dots.sigma)
+
+
+def _nearest_dots(dots: DotRims, usable: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(K, Q) indices of the :data:`N_NEIGHBOURS` + 1 dots of ``usable`` (N,) bool nearest each of the
+    points ``at`` (K, 2) px (Q: fewer where fewer are usable)."""
+    pool = np.flatnonzero(usable)
+    n_q = min(N_NEIGHBOURS + 1, len(pool))
+    _, near = cKDTree(dots.centres[pool]).query(at, k=n_q)
+    return pool[np.asarray(near).reshape(len(at), n_q)]
+
+
 def _fill_terms(dots: DotRims, u: np.ndarray, v: np.ndarray) -> list[tuple[np.ndarray, ...]]:
     """The geometry of :func:`ellipse_fill` for the dots near the points (u, v) (K, R, T) px: per term
     (the dots j (K,), then ρ, the rim's distance R, the disc radius √(ρ_c R) and σ, each (K, R, T)), for the
     :data:`N_NEIGHBOURS` + 1 dots nearest each ray's first sample (dots with a non-finite ellipse or blur
     left out), the terms no sample comes within 8 σ of left out."""
-    k = u.shape[0]
-    pool = np.flatnonzero(np.isfinite(dots.centres).all(axis=1) & np.isfinite(dots.axes).all(axis=1)
-                          & np.isfinite(dots.sigma))
-    n_q = min(N_NEIGHBOURS + 1, len(pool))
-    _, near = cKDTree(dots.centres[pool]).query(np.stack([u[:, 0, 0], v[:, 0, 0]], axis=1), k=n_q)
-    near = pool[np.asarray(near).reshape(k, n_q)]
+    near = _nearest_dots(dots, _modelled(dots), np.stack([u[:, 0, 0], v[:, 0, 0]], axis=1))
     terms = []
-    for q in range(n_q):
+    for q in range(near.shape[1]):
         j = near[:, q]
         c, s = np.cos(dots.theta[j])[:, None, None], np.sin(dots.theta[j])[:, None, None]
         du, dv = u - dots.centres[j, 0, None, None], v - dots.centres[j, 1, None, None]

@@ -62,6 +62,18 @@ def _hull_area(x, y):  # pragma: no cover - compiled
     return _shoelace(hx[: k - 1], hy[: k - 1])  # the last point repeats the first
 
 
+@njit(inline="always", **_COMPILED)
+def _sized_contour(points, start, length, a_min, a_max):  # pragma: no cover - compiled
+    """(u, v, area) of the closed contour points[start:start + length]; area NaN where it has fewer than
+    6 points or its area lies outside a_min … a_max."""
+    x = points[start : start + length, 0]
+    y = points[start : start + length, 1]
+    if length < 6:
+        return x, y, np.nan
+    a = _shoelace(x, y)
+    return x, y, (a if a_min <= a <= a_max else np.nan)
+
+
 @njit(**_COMPILED)
 def contour_areas(points, starts, lens, a_min, a_max):  # pragma: no cover - compiled
     """(area, hull area) (N,) of N closed contours, contour j being points[starts[j]:starts[j] + lens[j]]
@@ -72,12 +84,8 @@ def contour_areas(points, starts, lens, a_min, a_max):  # pragma: no cover - com
     area = np.full(n, np.nan)
     hull = np.full(n, np.nan)
     for j in range(n):
-        if lens[j] < 6:
-            continue
-        x = points[starts[j] : starts[j] + lens[j], 0]
-        y = points[starts[j] : starts[j] + lens[j], 1]
-        a = _shoelace(x, y)
-        if a < a_min or a > a_max:
+        x, y, a = _sized_contour(points, starts[j], lens[j], a_min, a_max)
+        if np.isnan(a):
             continue
         area[j] = a
         hull[j] = _hull_area(x, y)
@@ -132,12 +140,8 @@ def convex_contour_areas(points, starts, lens, a_min, a_max, min_convexity):  # 
     area = np.full(n, np.nan)
     convex = np.zeros(n, np.bool_)
     for j in range(n):
-        if lens[j] < 6:
-            continue
-        x = points[starts[j] : starts[j] + lens[j], 0]
-        y = points[starts[j] : starts[j] + lens[j], 1]
-        a = _shoelace(x, y)
-        if a < a_min or a > a_max:
+        x, y, a = _sized_contour(points, starts[j], lens[j], a_min, a_max)
+        if np.isnan(a):
             continue
         area[j] = a
         low, box = _octagon_and_box(x, y)
